@@ -1,0 +1,39 @@
+# Set-up and everyday commands. Every target creates what it needs (.venv) on first use.
+PY      ?= python3
+VENV    ?= .venv
+BIN     := $(VENV)/bin
+STAMP   := $(VENV)/.installed
+TORCH   ?= torch==2.13.0
+
+.PHONY: run test test-all lint bench clean
+
+$(STAMP): pyproject.toml
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install -q --upgrade pip
+	# The CPU build first: a bare `torch` requirement could otherwise resolve to a CUDA build.
+	$(BIN)/pip install -q "$(TORCH)"
+	$(BIN)/pip install -q -e ".[dev]"
+	touch $(STAMP)
+
+## run: the main job on its small built-in default
+run: $(STAMP)
+	$(BIN)/latentdrive show merge --out runs/show-merge.png
+	$(BIN)/latentdrive bench --steps 20
+
+## test: the default (fast) test suite
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+## test-all: every test, slow ones included
+test-all: $(STAMP)
+	$(BIN)/python -m pytest -q -m ""
+
+lint: $(STAMP)
+	$(BIN)/ruff check latentdrive tests
+	$(BIN)/mypy latentdrive
+
+bench: $(STAMP)
+	$(BIN)/latentdrive bench
+
+clean:
+	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache

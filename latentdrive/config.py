@@ -1,0 +1,169 @@
+"""Typed, validated configuration shared by every part of latentdrive.
+
+Every concern has one frozen pydantic model whose fields carry units in their
+descriptions. Unknown keys and out-of-range values raise :class:`ConfigError`, a
+``ValueError`` whose one-line message names the offending field, so the CLI can print it
+without a traceback. The resolved config is saved beside every artifact; its
+:func:`config_hash` identifies artifacts made under the same settings.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+__all__ = [
+    "Config",
+    "ConfigError",
+    "NoiseConfig",
+    "ObservationConfig",
+    "config_hash",
+    "load_yaml",
+    "merge_overrides",
+    "parse_override_args",
+    "validate",
+]
+
+C = TypeVar("C", bound="Config")
+
+
+class ConfigError(ValueError):
+    """A config value is unknown, malformed or out of range; the message names the field."""
+
+
+class Config(BaseModel):
+    """Base of every config object: immutable, strict about unknown keys."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+    def replace(self: C, **changes: Any) -> C:
+        """A validated copy with ``changes`` merged in (nested dicts merge recursively)."""
+        return validate(type(self), merge_overrides(self.model_dump(), changes))
+
+
+def _format_validation_error(exc: ValidationError, prefix: str = "") -> str:
+    parts = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"] if p != "__root__")
+        loc = f"{prefix}{loc}" if loc else prefix.rstrip(".") or "config"
+        msg = err["msg"]
+        if err["type"] == "extra_forbidden":
+            msg = "unknown key"
+        parts.append(f"{loc}: {msg}")
+    return "invalid config: " + "; ".join(parts)
+
+
+def validate(model: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
+    """Build ``model`` from ``data``, turning validation failures into :class:`ConfigError`."""
+    try:
+        return model.model_validate(dict(data))
+    except ValidationError as exc:
+        raise ConfigError(_format_validation_error(exc, prefix)) from None
+
+
+def merge_overrides(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:
+    """Recursively merge ``overrides`` into a copy of ``base``.
+
+    Keys may be dotted (``"observation.frames"``) to reach into nested sections.
+    """
+    out: dict[str, Any] = {k: v for k, v in base.items()}
+    for key, value in overrides.items():
+        head, _, rest = key.partition(".")
+        if rest:
+            value = {rest: value}
+        current = out.get(head)
+        if isinstance(value, Mapping) and isinstance(current, Mapping):
+            out[head] = merge_overrides(current, value)
+        else:
+            out[head] = value
+    return out
+
+
+def parse_override_args(items: list[str]) -> dict[str, Any]:
+    """Parse CLI ``key=value`` overrides; values are read as YAML scalars (``3``, ``0.5``, ``[1,2]``)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, raw = item.partition("=")
+        if not sep or not key:
+            raise ConfigError(f"invalid override {item!r}: expected key=value")
+        try:
+            out[key.strip()] = yaml.safe_load(raw)
+        except yaml.YAMLError:
+            raise ConfigError(f"invalid override {item!r}: value is not valid YAML") from None
+    return out
+
+
+def load_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping, with a one-line error naming the file when it is not one."""
+    p = Path(path)
+    try:
+        data = yaml.safe_load(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{p}: no such config file") from None
+    except yaml.YAMLError as exc:
+        raise ConfigError(f"{p}: malformed YAML ({str(exc).splitlines()[0]})") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: expected a mapping at the top level")
+    return data
+
+
+def config_hash(cfg: BaseModel) -> str:
+    """A short stable hash of a config's resolved values (key order does not matter)."""
+    blob = json.dumps(cfg.model_dump(mode="json"), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(blob.encode()).hexdigest()[:16]
+
+
+class NoiseConfig(Config):
+    """Sensor noise q_D applied to the observed scene before rasterization (paper eq. 8).
+
+    All draws come from a generator seeded per episode, so noisy observations are
+    reproducible. Zeros everywhere give the clean observation.
+    """
+
+    position_std: float = Field(0.5, ge=0.0, le=10.0, description="Std of the Gaussian jitter added to each other vehicle's x and y position, metres.")
+    speed_std: float = Field(0.5, ge=0.0, le=10.0, description="Std of the Gaussian jitter added to each vehicle's Frenet longitudinal speed, m/s.")
+    heading_std: float = Field(0.02, ge=0.0, le=1.0, description="Std of the Gaussian jitter added to each other vehicle's heading, radians.")
+    miss_prob: float = Field(0.05, ge=0.0, le=1.0, description="Probability that another vehicle is missed (not drawn) in a frame.")
+
+
+class ObservationConfig(Config):
+    """Stacked multi-channel VelocityMap (paper section V-A).
+
+    The grid is ego-centred and aligned with the observer's heading: rows run across the
+    road (lateral, left of the observer at row 0), columns along it (longitudinal,
+    behind the observer at column 0). Defaults are sized for CPU training: a 32×64 grid of
+    1.5 m cells sees 48 m across and 96 m along the road, 32 m behind and 64 m ahead.
+    """
+
+    height: int = Field(32, ge=4, le=512, description="Grid rows (lateral cells).")
+    width: int = Field(64, ge=4, le=1024, description="Grid columns (longitudinal cells).")
+    resolution: float = Field(1.5, gt=0.05, le=10.0, description="Cell size, metres per cell (square cells).")
+    behind: float = Field(32.0, ge=0.0, description="Distance seen behind the observer, metres; the rest of width·resolution is ahead.")
+    frames: int = Field(4, ge=1, le=32, description="T: number of stacked frames, most recent last.")
+    alpha: float = Field(0.5, gt=0.0, description="α of eq. 13, 1/(m/s): scales |v| inside the log.")
+    beta: float = Field(0.37, gt=0.0, description="β of eq. 13, dimensionless: slope of the log decay. With α=0.5 a vehicle 30 m/s faster or slower than the observer maps to 0.")
+    v0: float = Field(2.0, gt=0.0, description="v0 of eq. 13, m/s: below it a vehicle cell is 1. Default 1/α makes the map continuous at v0.")
+    max_speed: float = Field(40.0, gt=0.0, description="Absolute speed mapped to 1 in the MV (mission vehicle) channel, m/s.")
+    noise: NoiseConfig = Field(default_factory=NoiseConfig, description="Sensor noise.")
+
+    @model_validator(mode="after")
+    def _check_extent(self) -> ObservationConfig:
+        if self.behind > self.width * self.resolution:
+            raise ValueError(
+                f"behind={self.behind} m exceeds the grid length width*resolution="
+                f"{self.width * self.resolution} m"
+            )
+        return self
+
+    @property
+    def shape(self) -> tuple[int, int, int, int]:
+        """Per-agent observation shape ``(4, T, H, W)``."""
+        return (4, self.frames, self.height, self.width)

@@ -1,0 +1,144 @@
+"""The Scene: the one boundary between simulators and everything downstream.
+
+A :class:`Scene` is a struct of arrays describing every vehicle at one instant, plus a
+handle to the road layout's drivable-area raster. Backends produce Scenes; observation,
+data collection and learning consume them and never import a simulator.
+
+Conventions: world frame in metres (x, y), headings in radians measured from +x towards
++y (highway-env's convention: y grows to the right of a car heading along +x), speeds in
+m/s.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import IntEnum
+
+import numpy as np
+from numpy.typing import NDArray
+
+__all__ = ["Kind", "RoadRaster", "Scene", "rasterize_strips"]
+
+FloatArray = NDArray[np.float64]
+
+
+class Kind(IntEnum):
+    """What drives a vehicle. The mission vehicle (MV) is the observing AV itself."""
+
+    HV = 0  # human-driven: IDM + MOBIL
+    AV = 1  # autonomous: driven by the learned policy
+
+
+@dataclass(frozen=True, eq=False)
+class RoadRaster:
+    """Drivable area of a road layout in the world frame, rasterized once per layout.
+
+    Attributes:
+        mask: ``(rows, cols)`` uint8, 1 where the road is drivable. Row index grows with
+            world y, column index with world x.
+        origin: ``(2,)`` world (x, y) of the centre of cell ``[0, 0]``, metres.
+        resolution: cell size, metres.
+    """
+
+    mask: NDArray[np.uint8]
+    origin: FloatArray
+    resolution: float
+
+    def sample(self, xy: FloatArray) -> NDArray[np.uint8]:
+        """Drivable flag at world points ``xy`` of shape ``(..., 2)`` (nearest cell; 0 outside)."""
+        idx = np.rint((xy - self.origin) / self.resolution).astype(np.int64)
+        col, row = idx[..., 0], idx[..., 1]
+        rows, cols = self.mask.shape
+        inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+        out = np.zeros(xy.shape[:-1], dtype=np.uint8)
+        out[inside] = self.mask[row[inside], col[inside]]
+        return out
+
+
+def rasterize_strips(
+    centers: FloatArray,
+    headings: FloatArray,
+    half_widths: FloatArray,
+    resolution: float = 0.5,
+    margin: float = 5.0,
+) -> RoadRaster:
+    """Rasterize lanes given as densely sampled centreline points into a :class:`RoadRaster`.
+
+    Each centreline sample marks the cells under a lateral segment of half-width
+    ``half_widths[i]`` across its heading. Sample centrelines at most ``resolution`` apart
+    so that consecutive segments leave no gaps.
+
+    Args:
+        centers: ``(P, 2)`` centreline points, metres.
+        headings: ``(P,)`` lane heading at each point, radians.
+        half_widths: ``(P,)`` half lane width at each point, metres.
+        resolution: raster cell size, metres.
+        margin: empty border around the road, metres.
+    """
+    centers = np.asarray(centers, dtype=np.float64)
+    lo = centers.min(axis=0) - half_widths.max() - margin
+    hi = centers.max(axis=0) + half_widths.max() + margin
+    shape = (int(np.ceil((hi[1] - lo[1]) / resolution)) + 1, int(np.ceil((hi[0] - lo[0]) / resolution)) + 1)
+    mask = np.zeros(shape, dtype=np.uint8)
+    # Lateral offsets at half-cell spacing: every cell a strip crosses gets at least one hit.
+    n_off = int(np.ceil(half_widths.max() / (0.5 * resolution)))
+    unit = np.linspace(-1.0, 1.0, 2 * n_off + 1)
+    normals = np.stack([-np.sin(headings), np.cos(headings)], axis=-1)  # (P, 2)
+    offsets = unit[None, :, None] * half_widths[:, None, None] * normals[:, None, :]  # (P, K, 2)
+    pts = (centers[:, None, :] + offsets).reshape(-1, 2)
+    idx = np.rint((pts - lo) / resolution).astype(np.int64)
+    mask[idx[:, 1], idx[:, 0]] = 1
+    return RoadRaster(mask=mask, origin=lo, resolution=float(resolution))
+
+
+@dataclass(frozen=True, eq=False)
+class Scene:
+    """All vehicles of one environment at one instant, as arrays of length N.
+
+    Attributes:
+        position: ``(N, 2)`` world x, y of each vehicle's centre, metres.
+        heading: ``(N,)`` yaw, radians.
+        speed: ``(N,)`` speed along the heading, m/s.
+        frenet_speed: ``(N,)`` longitudinal speed along the vehicle's current lane
+            (Frenet ṡ), m/s. The VelocityMap encodes differences of these (eq. 13).
+        length: ``(N,)`` metres.
+        width: ``(N,)`` metres.
+        kind: ``(N,)`` int8, a :class:`Kind` value.
+        mask: ``(N,)`` bool, False for padding slots (batched backends pad to a fixed N).
+        crashed: ``(N,)`` bool.
+        agents: ``(n_av,)`` int64 indices of the AVs, in agent order: agent i of the env's
+            actions, rewards and observations is vehicle ``agents[i]``.
+        road: the layout's drivable-area raster (shared by every Scene of the layout).
+        time: simulated time since reset, seconds.
+    """
+
+    position: FloatArray
+    heading: FloatArray
+    speed: FloatArray
+    frenet_speed: FloatArray
+    length: FloatArray
+    width: FloatArray
+    kind: NDArray[np.int8]
+    mask: NDArray[np.bool_]
+    crashed: NDArray[np.bool_]
+    agents: NDArray[np.int64]
+    road: RoadRaster
+    time: float = 0.0
+
+    def __post_init__(self) -> None:
+        n = self.position.shape[0]
+        if self.position.shape != (n, 2):
+            raise ValueError(f"Scene.position must be (N, 2), got {self.position.shape}")
+        for name in ("heading", "speed", "frenet_speed", "length", "width", "kind", "mask", "crashed"):
+            if getattr(self, name).shape != (n,):
+                raise ValueError(f"Scene.{name} must be ({n},), got {getattr(self, name).shape}")
+        if self.agents.size and (self.agents.max() >= n or self.agents.min() < 0):
+            raise ValueError("Scene.agents indexes outside the vehicle arrays")
+
+    @property
+    def n_vehicles(self) -> int:
+        return int(self.position.shape[0])
+
+    @property
+    def n_agents(self) -> int:
+        return int(self.agents.shape[0])
