@@ -52,7 +52,7 @@ def _format_validation_error(exc: ValidationError, prefix: str = "") -> str:
     for err in exc.errors():
         loc = ".".join(str(p) for p in err["loc"] if p != "__root__")
         loc = f"{prefix}{loc}" if loc else prefix.rstrip(".") or "config"
-        msg = err["msg"]
+        msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
         parts.append(f"{loc}: {msg}")
@@ -139,8 +139,11 @@ class ObservationConfig(Config):
 
     The grid is ego-centred and aligned with the observer's heading: rows run across the
     road (lateral, left of the observer at row 0), columns along it (longitudinal,
-    behind the observer at column 0). Defaults are sized for CPU training: a 32×64 grid of
-    1.5 m cells sees 48 m across and 96 m along the road, 32 m behind and 64 m ahead.
+    behind the observer at column 0). In the observer's frame (x ahead, y to its right, as
+    world y is to the right of a car heading along +x) cell (i, j) is centred at
+    x = -behind + (j + 0.5)·resolution and y = (i + 0.5)·resolution - height·resolution/2.
+    Defaults are sized for CPU training: a 32×64 grid of 1.5 m cells sees 48 m across
+    and 96 m along the road, 32 m behind and 64 m ahead.
     """
 
     height: int = Field(32, ge=4, le=512, description="Grid rows (lateral cells).")
@@ -152,7 +155,11 @@ class ObservationConfig(Config):
     beta: float = Field(0.37, gt=0.0, description="β of eq. 13, dimensionless: slope of the log decay. With α=0.5 a vehicle 30 m/s faster or slower than the observer maps to 0.")
     v0: float = Field(2.0, gt=0.0, description="v0 of eq. 13, m/s: below it a vehicle cell is 1. Default 1/α makes the map continuous at v0.")
     max_speed: float = Field(40.0, gt=0.0, description="Absolute speed mapped to 1 in the MV (mission vehicle) channel, m/s.")
-    noise: NoiseConfig = Field(default_factory=NoiseConfig, description="Sensor noise.")
+    # model_validate rather than the bare class keeps mypy (without the pydantic plugin)
+    # from reading the fields' defaults as required constructor arguments.
+    noise: NoiseConfig = Field(
+        default_factory=lambda: NoiseConfig.model_validate({}), description="Sensor noise."
+    )
 
     @model_validator(mode="after")
     def _check_extent(self) -> ObservationConfig:

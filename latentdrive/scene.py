@@ -44,6 +44,17 @@ class RoadRaster:
     origin: FloatArray
     resolution: float
 
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, RoadRaster):
+            return NotImplemented
+        return self is other or (
+            self.resolution == other.resolution
+            and np.array_equal(self.origin, other.origin)
+            and np.array_equal(self.mask, other.mask)
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
     def sample(self, xy: FloatArray) -> NDArray[np.uint8]:
         """Drivable flag at world points ``xy`` of shape ``(..., 2)`` (nearest cell; 0 outside)."""
         idx = np.rint((xy - self.origin) / self.resolution).astype(np.int64)
@@ -110,6 +121,8 @@ class Scene:
             actions, rewards and observations is vehicle ``agents[i]``.
         road: the layout's drivable-area raster (shared by every Scene of the layout).
         time: simulated time since reset, seconds.
+        arrived: ``(N,)`` bool, True for AVs that have completed their mission (all False
+            when omitted).
     """
 
     position: FloatArray
@@ -124,16 +137,31 @@ class Scene:
     agents: NDArray[np.int64]
     road: RoadRaster
     time: float = 0.0
+    arrived: NDArray[np.bool_] | None = None
 
     def __post_init__(self) -> None:
         n = self.position.shape[0]
+        if self.arrived is None:
+            object.__setattr__(self, "arrived", np.zeros(n, dtype=bool))
         if self.position.shape != (n, 2):
             raise ValueError(f"Scene.position must be (N, 2), got {self.position.shape}")
-        for name in ("heading", "speed", "frenet_speed", "length", "width", "kind", "mask", "crashed"):
+        for name in ("heading", "speed", "frenet_speed", "length", "width", "kind", "mask", "crashed", "arrived"):
             if getattr(self, name).shape != (n,):
                 raise ValueError(f"Scene.{name} must be ({n},), got {getattr(self, name).shape}")
         if self.agents.size and (self.agents.max() >= n or self.agents.min() < 0):
             raise ValueError("Scene.agents indexes outside the vehicle arrays")
+
+    def __eq__(self, other: object) -> bool:
+        """Equal when every array holds the same values (for determinism checks)."""
+        if not isinstance(other, Scene):
+            return NotImplemented
+        return self.time == other.time and self.road == other.road and all(
+            np.array_equal(getattr(self, f), getattr(other, f))
+            for f in ("position", "heading", "speed", "frenet_speed", "length", "width",
+                      "kind", "mask", "crashed", "arrived", "agents")
+        )
+
+    __hash__ = None  # type: ignore[assignment]
 
     @property
     def n_vehicles(self) -> int:

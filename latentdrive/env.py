@@ -1,0 +1,153 @@
+"""The gymnasium environment: scenario spec + backend + VelocityMap observation + reward.
+
+One env holds ``n_av`` agents that share a policy. Observations are stacked VelocityMaps
+of every agent, ``(n_av, 4, T, H, W)`` float32 in [0, 1]; actions are one meta-action
+index per agent (``MultiDiscrete([5] * n_av)``); the scalar reward is the mean of the
+per-agent rewards, which are in ``info["agent_rewards"]`` for learners that want them
+separately (parameter sharing learns from each agent's transition).
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal
+
+import gymnasium as gym
+import numpy as np
+from pydantic import Field
+
+from latentdrive.actions import N_ACTIONS
+from latentdrive.config import Config, ConfigError, ObservationConfig, merge_overrides, validate
+from latentdrive.observe import FrameStack, render_frame
+from latentdrive.reward import agent_rewards
+from latentdrive.scenarios import RewardConfig, ScenarioSpec, get_spec
+from latentdrive.scene import Scene
+from latentdrive.sim import make_backend
+
+__all__ = ["DrivingEnv", "EnvConfig", "make_env", "make_env_config"]
+
+
+class EnvConfig(Config):
+    """Everything that defines an environment."""
+
+    scenario: ScenarioSpec = Field(description="The scenario to simulate.")
+    observation: ObservationConfig = Field(default_factory=ObservationConfig, description="VelocityMap settings.")
+    reward: RewardConfig = Field(default_factory=RewardConfig, description="Per-agent reward weights.")
+    backend: Literal["highway"] = Field("highway", description="Simulator backend.")
+    clean_observation: bool = Field(False, description="Also return the noise-free stack in info['clean_observation'] (for denoising datasets).")
+
+
+_ENV_KEYS = set(EnvConfig.model_fields) - {"scenario"}
+
+
+def make_env_config(scenario: str | ScenarioSpec, **overrides: Any) -> EnvConfig:
+    """Resolve a scenario name (or spec) and overrides into an :class:`EnvConfig`.
+
+    Overrides named ``observation``, ``reward``, ``backend`` or ``clean_observation`` (or
+    dotted into them, ``observation.frames=2``) configure the env; every other key
+    overrides a scenario field (``n_av=3``, ``duration=20``).
+    """
+    env_part = {k: v for k, v in overrides.items() if k.partition(".")[0] in _ENV_KEYS}
+    spec_part = {k: v for k, v in overrides.items() if k.partition(".")[0] not in _ENV_KEYS}
+    spec = get_spec(scenario, **spec_part)
+    return validate(EnvConfig, merge_overrides({"scenario": spec}, env_part))
+
+
+class DrivingEnv(gym.Env[np.ndarray, np.ndarray]):
+    """A mixed-autonomy driving scenario as a gymnasium Env.
+
+    Args:
+        scenario: a scenario name, a spec, or None when ``config`` is given.
+        config: a complete config (overrides then apply on top of it).
+        **overrides: see :func:`make_env_config`.
+
+    ``info`` after reset and step holds ``scene`` (the :class:`Scene`), ``agent_rewards``
+    ``(n_av,)``, ``crashed`` and ``arrived`` ``(n_av,)`` bool, ``scenario`` and
+    ``episode_seed``.
+    """
+
+    metadata: dict[str, Any] = {"render_modes": []}
+
+    def __init__(self, scenario: str | ScenarioSpec | None = None, config: EnvConfig | None = None, **overrides: Any) -> None:
+        super().__init__()
+        if config is None:
+            if scenario is None:
+                raise ConfigError("DrivingEnv needs a scenario or a config")
+            config = make_env_config(scenario, **overrides)
+        elif overrides or scenario is not None:
+            config = make_env_config(scenario or config.scenario, **merge_overrides(
+                {k: v for k, v in config.model_dump().items() if k != "scenario"}, overrides))
+        self.config = config
+        self.spec_ = config.scenario
+        n_av = self.spec_.n_av
+        self.observation_space = gym.spaces.Box(0.0, 1.0, (n_av, *config.observation.shape), np.float32)
+        self.action_space = gym.spaces.MultiDiscrete(np.full(n_av, N_ACTIONS, dtype=np.int64))
+        self._backend = make_backend(self.spec_, config.backend)
+        self._stack = FrameStack(config.observation.frames)
+        self._clean_stack = FrameStack(config.observation.frames)
+        self._noise_rng = np.random.default_rng(0)
+        self._scene: Scene | None = None
+        self._steps = 0
+        self._episode_seed = 0
+
+    @property
+    def scene(self) -> Scene:
+        """The current Scene (after :meth:`reset`)."""
+        if self._scene is None:
+            raise RuntimeError("call reset() first")
+        return self._scene
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        # Episode seeds come from the env's generator: reset(seed=s) fixes the whole
+        # sequence of episodes that follows, as gymnasium specifies.
+        self._episode_seed = int(self.np_random.integers(2**63 - 1))
+        self._noise_rng = np.random.default_rng([self._episode_seed, 2])
+        scene = self._backend.reset(self._episode_seed)
+        self._scene, self._steps = scene, 0
+        self._stack.reset(self._frame(scene, noisy=True))
+        if self.config.clean_observation:
+            self._clean_stack.reset(self._frame(scene, noisy=False))
+        zeros = np.zeros(self.spec_.n_av)
+        return self._stack.stack, self._info(scene, zeros)
+
+    def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        before = self.scene
+        actions = np.asarray(action, dtype=np.int64).reshape(-1)
+        if actions.shape != (self.spec_.n_av,) or actions.min() < 0 or actions.max() >= N_ACTIONS:
+            raise ValueError(f"action must be {self.spec_.n_av} integers in [0, {N_ACTIONS}), got {action!r}")
+        scene = self._backend.step(actions)
+        self._scene = scene
+        self._steps += 1
+        ag, prev = scene.agents, before.agents
+        rewards = agent_rewards(
+            scene.speed[ag], scene.crashed[ag], scene.arrived[ag],  # type: ignore[index]
+            before.crashed[prev], before.arrived[prev],  # type: ignore[index]
+            self.spec_.reward_speed_range, self.config.reward,
+        )
+        terminated = bool(scene.crashed[ag].any() or scene.arrived[ag].all())  # type: ignore[index]
+        truncated = (not terminated) and self._steps >= self.spec_.max_steps
+        self._stack.push(self._frame(scene, noisy=True))
+        if self.config.clean_observation:
+            self._clean_stack.push(self._frame(scene, noisy=False))
+        return self._stack.stack, float(rewards.mean()), terminated, truncated, self._info(scene, rewards)
+
+    def _frame(self, scene: Scene, noisy: bool) -> np.ndarray:
+        return render_frame(scene, scene.agents, self.config.observation, rng=self._noise_rng if noisy else None)
+
+    def _info(self, scene: Scene, rewards: np.ndarray) -> dict[str, Any]:
+        info: dict[str, Any] = {
+            "scene": scene,
+            "agent_rewards": rewards,
+            "crashed": scene.crashed[scene.agents].copy(),
+            "arrived": scene.arrived[scene.agents].copy(),  # type: ignore[index]
+            "scenario": self.spec_.name,
+            "episode_seed": self._episode_seed,
+        }
+        if self.config.clean_observation:
+            info["clean_observation"] = self._clean_stack.stack
+        return info
+
+
+def make_env(scenario: str | ScenarioSpec, **overrides: Any) -> DrivingEnv:
+    """Create the env of a scenario: ``make_env("merge", n_av=3, observation={"frames": 2})``."""
+    return DrivingEnv(scenario, **overrides)

@@ -1,0 +1,57 @@
+"""The five scenarios of the paper, as data, and the spec type users write their own with."""
+
+from __future__ import annotations
+
+from functools import cache
+from pathlib import Path
+from typing import Any
+
+from latentdrive.config import ConfigError, load_yaml, merge_overrides, validate
+from latentdrive.scenarios.spec import (
+    LAYOUTS,
+    ClippedGaussian,
+    DriverParams,
+    Goal,
+    RewardConfig,
+    ScenarioSpec,
+    SpawnRegion,
+)
+
+__all__ = [
+    "LAYOUTS",
+    "SCENARIOS",
+    "ClippedGaussian",
+    "DriverParams",
+    "Goal",
+    "RewardConfig",
+    "ScenarioSpec",
+    "SpawnRegion",
+    "get_spec",
+]
+
+_PRESETS = Path(__file__).parent / "presets"
+SCENARIOS: tuple[str, ...] = ("roundabout", "intersection", "merge", "exit", "highway")
+
+
+@cache
+def _preset(name: str) -> dict[str, Any]:
+    return load_yaml(_PRESETS / f"{name}.yaml")
+
+
+def get_spec(scenario: str | ScenarioSpec, **overrides: Any) -> ScenarioSpec:
+    """The spec of a named scenario (or a YAML file path), with ``overrides`` applied.
+
+    Raises:
+        ConfigError: unknown scenario, or an override that is unknown or out of range.
+    """
+    if isinstance(scenario, ScenarioSpec):
+        base: dict[str, Any] = scenario.model_dump()
+    elif scenario in SCENARIOS:
+        base = _preset(scenario)
+    elif str(scenario).endswith((".yaml", ".yml")):
+        base = load_yaml(scenario)
+    else:
+        raise ConfigError(
+            f"unknown scenario {scenario!r}: choose one of {', '.join(SCENARIOS)} or a .yaml spec file"
+        )
+    return validate(ScenarioSpec, merge_overrides(base, overrides), prefix="scenario.")

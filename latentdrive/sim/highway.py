@@ -1,0 +1,277 @@
+"""The reference backend: highway-env 1.12.x, the simulator the paper used.
+
+This is the only module that imports highway-env. It borrows highway-env's road layouts
+and vehicle models (IDM + MOBIL human drivers, MDPVehicle meta-action controllers on a
+kinematic bicycle), but places every vehicle itself from the :class:`ScenarioSpec`, so
+that every scenario can hold several AVs, and it never constructs highway-env's own
+environments, whose resets write driver constants on shared classes.
+"""
+
+from __future__ import annotations
+
+from functools import cache
+from typing import Any
+
+import numpy as np
+from highway_env.envs.exit_env import ExitEnv
+from highway_env.envs.highway_env import HighwayEnv
+from highway_env.envs.intersection_env import IntersectionEnv
+from highway_env.envs.merge_env import MergeEnv
+from highway_env.envs.roundabout_env import RoundaboutEnv
+from highway_env.road.road import Road
+from highway_env.vehicle.behavior import IDMVehicle
+from highway_env.vehicle.controller import MDPVehicle
+
+from latentdrive.actions import META_ACTIONS
+from latentdrive.scenarios.spec import DriverParams, ScenarioSpec, SpawnRegion
+from latentdrive.scene import Kind, RoadRaster, Scene, rasterize_strips
+
+__all__ = ["HighwayBackend", "ScenarioError"]
+
+# Road builders of highway-env, called on a small host object rather than on a constructed
+# env: constructing IntersectionEnv resets it, and its reset mutates IDMVehicle's class.
+_ROAD_BUILDERS: dict[str, tuple[type, str]] = {
+    "roundabout": (RoundaboutEnv, "_make_road"),
+    "intersection": (IntersectionEnv, "_make_road"),
+    "merge": (MergeEnv, "_make_road"),
+    "exit": (ExitEnv, "_create_road"),
+    "highway": (HighwayEnv, "_create_road"),
+}
+
+# Driver parameters written per instance; instance attributes shadow the class ones.
+_DRIVER_ATTRS = {
+    "acc_max": "ACC_MAX",
+    "comfort_acc_max": "COMFORT_ACC_MAX",
+    "comfort_acc_min": "COMFORT_ACC_MIN",
+    "distance_wanted": "DISTANCE_WANTED",
+    "time_wanted": "TIME_WANTED",
+    "politeness": "POLITENESS",
+    "lane_change_min_acc_gain": "LANE_CHANGE_MIN_ACC_GAIN",
+    "lane_change_max_braking_imposed": "LANE_CHANGE_MAX_BRAKING_IMPOSED",
+    "lane_change_delay": "LANE_CHANGE_DELAY",
+}
+
+
+# Minimum centre distance between any two vehicles at spawn, whatever their lanes, metres:
+# a car length plus a metre, so that footprints never overlap.
+_CLEARANCE = 6.0
+Placed = tuple[np.ndarray, tuple[str, str, int]]
+
+
+class ScenarioError(ValueError):
+    """A scenario cannot be built as specified (e.g. vehicles cannot be placed)."""
+
+
+class _RoadHost:
+    """Just enough of an AbstractEnv for highway-env's road builders."""
+
+    def __init__(self, config: dict[str, Any], np_random: np.random.Generator) -> None:
+        self.config = config
+        self.np_random = np_random
+        self.road: Road | None = None
+
+
+def _road_config(spec: ScenarioSpec) -> dict[str, Any]:
+    env_cls, _ = _ROAD_BUILDERS[spec.layout]
+    config: dict[str, Any] = env_cls.default_config()
+    config.update(
+        lanes_count=spec.lanes_count,
+        simulation_frequency=spec.simulation_frequency,
+        policy_frequency=spec.policy_frequency,
+        show_trajectories=False,
+    )
+    return config
+
+
+def build_road(spec: ScenarioSpec, rng: np.random.Generator) -> Road:
+    """A fresh highway-env Road of the spec's layout, drawing from ``rng``."""
+    env_cls, method = _ROAD_BUILDERS[spec.layout]
+    host = _RoadHost(_road_config(spec), rng)
+    getattr(env_cls, method)(host)
+    assert host.road is not None
+    return host.road
+
+
+@cache
+def layout_raster(layout: str, lanes_count: int, resolution: float = 0.5) -> RoadRaster:
+    """Drivable-area raster of a layout, computed once per (layout, lanes) and cached.
+
+    Every lane is sampled along its centreline every ``resolution/2`` metres; the samples
+    are handed to :func:`latentdrive.scene.rasterize_strips`.
+    """
+    spec_like = ScenarioSpec.model_construct(layout=layout, lanes_count=lanes_count, simulation_frequency=15, policy_frequency=1)
+    road = build_road(spec_like, np.random.default_rng(0))
+    centers, headings, half = [], [], []
+    for lanes in (lanes for tos in road.network.graph.values() for lanes in tos.values()):
+        for lane in lanes:
+            s = np.arange(0.0, lane.length + 1e-9, resolution / 2)
+            centers.append(np.array([lane.position(si, 0.0) for si in s]))
+            headings.append(np.array([lane.heading_at(si) for si in s]))
+            half.append(np.array([lane.width_at(si) / 2 for si in s]))
+    raster = rasterize_strips(np.concatenate(centers), np.concatenate(headings), np.concatenate(half), resolution)
+    raster.mask.flags.writeable = False
+    return raster
+
+
+def _set_driver(vehicle: IDMVehicle, params: DriverParams, rng: np.random.Generator) -> None:
+    for field, attr in _DRIVER_ATTRS.items():
+        setattr(vehicle, attr, getattr(params, field))
+    vehicle.DELTA = float(rng.uniform(*params.delta_range))
+    # IDMVehicle seeds its lane-change timer from the class-level delay at construction.
+    vehicle.timer = float(np.sum(vehicle.position) * np.pi) % params.lane_change_delay
+
+
+class HighwayBackend:
+    """Runs one scenario on highway-env and reports each instant as a :class:`Scene`.
+
+    Args:
+        spec: the scenario.
+    """
+
+    name = "highway"
+
+    def __init__(self, spec: ScenarioSpec) -> None:
+        self.spec = spec
+        self.raster = layout_raster(spec.layout, spec.lanes_count)
+        self.road: Road | None = None
+        self.avs: list[MDPVehicle] = []
+        self._goal_nodes: list[frozenset[str]] = []
+        self._arrived = np.zeros(spec.n_av, dtype=bool)
+        self.time = 0.0
+
+    # -- episode -----------------------------------------------------------------------
+    def reset(self, seed: int) -> Scene:
+        """Build the road and place every vehicle, deterministically for ``seed``."""
+        rng = np.random.default_rng(seed)
+        # The road's own generator drives highway-env's internal draws (route choices at
+        # forks, regulation); keep it separate from placement so adding one vehicle type
+        # does not shift the other's randomness.
+        road_rng = np.random.default_rng([seed, 1])
+        self.road = build_road(self.spec, road_rng)
+        self.avs, self._goal_nodes = [], []
+        placed: list[Placed] = []
+        for i in range(self.spec.n_av):
+            region = self.spec.av_spawn[i % len(self.spec.av_spawn)]
+            self._place(region, rng, placed, av=True)
+        for i in range(self.spec.n_hv):
+            region = self.spec.hv_spawn[i % len(self.spec.hv_spawn)]
+            self._place(region, rng, placed, av=False)
+        self.time = 0.0
+        self._arrived = np.zeros(self.spec.n_av, dtype=bool)
+        self._update_arrived()
+        return self.scene()
+
+    def _place(self, region: SpawnRegion, rng: np.random.Generator, placed: list[Placed], av: bool) -> None:
+        assert self.road is not None
+        network = self.road.network
+        try:
+            lanes_on_edge = network.graph[region.edge[0]][region.edge[1]]
+        except KeyError:
+            raise ScenarioError(f"scenario {self.spec.name!r}: edge {region.edge} is not in the {self.spec.layout} layout") from None
+        if max(region.lanes) >= len(lanes_on_edge):
+            raise ScenarioError(f"scenario {self.spec.name!r}: edge {region.edge} has {len(lanes_on_edge)} lanes, spawn asks for lane {max(region.lanes)}")
+        for _attempt in range(64):
+            lane_id = int(rng.choice(region.lanes))
+            s = float(region.longitudinal.sample(rng)[0])
+            lane = lanes_on_edge[lane_id]
+            pos = lane.position(s, 0.0)
+            if self._is_free(pos, (*region.edge, lane_id), placed):
+                break
+        else:
+            lane_id, s = self._free_slot(region, lanes_on_edge, placed)
+            lane = lanes_on_edge[lane_id]
+            pos = lane.position(s, 0.0)
+        speed = float(region.speed.sample(rng)[0])
+        destination = str(rng.choice(region.destinations)) if region.destinations else None
+        lane_index = (region.edge[0], region.edge[1], lane_id)
+        if av:
+            vehicle: Any = MDPVehicle(
+                self.road, pos, heading=lane.heading_at(s), speed=speed,
+                target_lane_index=lane_index, target_speeds=np.asarray(self.spec.av_target_speeds),
+            )
+            self.avs.append(vehicle)
+            goal = {destination} if destination else set(self.spec.goal.nodes)
+            self._goal_nodes.append(frozenset(goal))
+        else:
+            vehicle = IDMVehicle(self.road, pos, heading=lane.heading_at(s), speed=speed, target_lane_index=lane_index)
+            _set_driver(vehicle, self.spec.driver, rng)
+        # Vehicles start on the lane they were placed on, not on whichever lane is closest.
+        vehicle.lane_index = lane_index
+        vehicle.lane = lane
+        if destination:
+            vehicle.plan_route_to(destination)
+        self.road.vehicles.append(vehicle)
+        placed.append((np.asarray(pos, dtype=float), lane_index))
+
+    def _is_free(self, pos: np.ndarray, lane_index: tuple[str, str, int], placed: list[Placed]) -> bool:
+        """Whether a vehicle at ``pos`` keeps ``min_gap`` from others on its lane and
+        ``_CLEARANCE`` from every other vehicle (lanes may be closer than ``min_gap``)."""
+        for p, idx in placed:
+            d = float(np.linalg.norm(pos - p))
+            if d < _CLEARANCE or (idx == lane_index and d < self.spec.min_gap):
+                return False
+        return True
+
+    def _free_slot(self, region: SpawnRegion, lanes: list[Any], placed: list[Placed]) -> tuple[int, float]:
+        """The first slot of the region's grid (lane, position) that is free."""
+        g = region.longitudinal
+        for s in np.arange(g.mean - g.clip, g.mean + g.clip + 1e-9, 1.0):
+            for lane_id in region.lanes:
+                if self._is_free(lanes[lane_id].position(s, 0.0), (*region.edge, lane_id), placed):
+                    return lane_id, float(s)
+        raise ScenarioError(
+            f"scenario {self.spec.name!r}: cannot place another vehicle on edge {region.edge} "
+            f"{self.spec.min_gap} m from the others; lower n_av/n_hv or min_gap"
+        )
+
+    def step(self, actions: np.ndarray) -> Scene:
+        """Apply one meta-action per AV, then simulate one policy period."""
+        assert self.road is not None, "reset() first"
+        for vehicle, a in zip(self.avs, np.asarray(actions).reshape(-1), strict=True):
+            vehicle.act(META_ACTIONS[int(a)])
+        dt = 1.0 / self.spec.simulation_frequency
+        for _ in range(self.spec.steps_per_action):
+            self.road.act()
+            self.road.step(dt)
+        self.time += self.spec.steps_per_action * dt
+        self._update_arrived()
+        return self.scene()
+
+    def _update_arrived(self) -> None:
+        for i, (vehicle, goal) in enumerate(zip(self.avs, self._goal_nodes, strict=True)):
+            if not self._arrived[i] and vehicle.lane_index[1] in goal:
+                s, _ = vehicle.lane.local_coordinates(vehicle.position)
+                self._arrived[i] = s >= self.spec.goal.longitudinal
+
+    # -- observation -------------------------------------------------------------------
+    def scene(self) -> Scene:
+        """The current instant as arrays (vehicle order: AVs first, then HVs)."""
+        assert self.road is not None
+        vehicles = list(self.road.vehicles)
+        n = len(vehicles)
+        position = np.array([v.position for v in vehicles], dtype=np.float64).reshape(n, 2)
+        heading = np.array([v.heading for v in vehicles], dtype=np.float64)
+        speed = np.array([v.speed for v in vehicles], dtype=np.float64)
+        lane_heading = np.array(
+            [v.lane.heading_at(v.lane.local_coordinates(v.position)[0]) for v in vehicles], dtype=np.float64
+        )
+        av_ids = {id(v) for v in self.avs}
+        kind = np.array([Kind.AV if id(v) in av_ids else Kind.HV for v in vehicles], dtype=np.int8)
+        agents = np.array([vehicles.index(v) for v in self.avs], dtype=np.int64)
+        arrived = np.zeros(n, dtype=bool)
+        arrived[agents] = self._arrived
+        return Scene(
+            position=position,
+            heading=heading,
+            speed=speed,
+            frenet_speed=speed * np.cos(heading - lane_heading),
+            length=np.array([v.LENGTH for v in vehicles], dtype=np.float64),
+            width=np.array([v.WIDTH for v in vehicles], dtype=np.float64),
+            kind=kind,
+            mask=np.ones(n, dtype=bool),
+            crashed=np.array([v.crashed for v in vehicles], dtype=bool),
+            arrived=arrived,
+            agents=agents,
+            road=self.raster,
+            time=self.time,
+        )
