@@ -21,6 +21,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_valida
 __all__ = [
     "Config",
     "ConfigError",
+    "LatentDriveError",
     "NoiseConfig",
     "ObservationConfig",
     "config_hash",
@@ -33,7 +34,14 @@ __all__ = [
 C = TypeVar("C", bound="Config")
 
 
-class ConfigError(ValueError):
+class LatentDriveError(Exception):
+    """An error caused by the user's input, with a one-line message that names the problem.
+
+    The CLI prints these without a traceback and exits non-zero.
+    """
+
+
+class ConfigError(LatentDriveError, ValueError):
     """A config value is unknown, malformed or out of range; the message names the field."""
 
 
@@ -152,7 +160,7 @@ class ObservationConfig(Config):
     behind: float = Field(32.0, ge=0.0, description="Distance seen behind the observer, metres; the rest of width·resolution is ahead.")
     frames: int = Field(4, ge=1, le=32, description="T: number of stacked frames, most recent last.")
     alpha: float = Field(0.5, gt=0.0, description="α of eq. 13, 1/(m/s): scales |v| inside the log.")
-    beta: float = Field(0.37, gt=0.0, description="β of eq. 13, dimensionless: slope of the log decay. With α=0.5 a vehicle 30 m/s faster or slower than the observer maps to 0.")
+    beta: float = Field(0.30, gt=0.0, description="β of eq. 13, dimensionless: slope of the log decay. With α=0.5 a vehicle 10 m/s faster or slower than the observer maps to 0.52, 40 m/s to 0.10, and beyond ~54 m/s to 0, so a stopped car stays visible to an observer at highway speed.")
     v0: float = Field(2.0, gt=0.0, description="v0 of eq. 13, m/s: below it a vehicle cell is 1. Default 1/α makes the map continuous at v0.")
     max_speed: float = Field(40.0, gt=0.0, description="Absolute speed mapped to 1 in the MV (mission vehicle) channel, m/s.")
     # model_validate rather than the bare class keeps mypy (without the pydantic plugin)

@@ -9,7 +9,7 @@ separately (parameter sharing learns from each agent's transition).
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import gymnasium as gym
 import numpy as np
@@ -65,7 +65,7 @@ class DrivingEnv(gym.Env[np.ndarray, np.ndarray]):
     ``episode_seed``.
     """
 
-    metadata: dict[str, Any] = {"render_modes": []}
+    metadata: ClassVar[dict[str, Any]] = {"render_modes": []}  # type: ignore[misc]
 
     def __init__(self, scenario: str | ScenarioSpec | None = None, config: EnvConfig | None = None, **overrides: Any) -> None:
         super().__init__()

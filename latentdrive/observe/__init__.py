@@ -1,0 +1,14 @@
+"""Observations: pure functions from a Scene to VelocityMap tensors (no simulator imports)."""
+
+from latentdrive.observe.velocitymap import (
+    AV,
+    CHANNELS,
+    HV,
+    MV,
+    RL,
+    FrameStack,
+    render_frame,
+    velocity_log_map,
+)
+
+__all__ = ["AV", "CHANNELS", "HV", "MV", "RL", "FrameStack", "render_frame", "velocity_log_map"]

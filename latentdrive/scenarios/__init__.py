@@ -13,6 +13,7 @@ from latentdrive.scenarios.spec import (
     DriverParams,
     Goal,
     RewardConfig,
+    ScenarioError,
     ScenarioSpec,
     SpawnRegion,
 )
@@ -24,6 +25,7 @@ __all__ = [
     "DriverParams",
     "Goal",
     "RewardConfig",
+    "ScenarioError",
     "ScenarioSpec",
     "SpawnRegion",
     "get_spec",

@@ -14,7 +14,7 @@ from typing import Literal
 import numpy as np
 from pydantic import Field, model_validator
 
-from latentdrive.config import Config
+from latentdrive.config import Config, ConfigError
 
 __all__ = [
     "LAYOUTS",
@@ -22,6 +22,7 @@ __all__ = [
     "DriverParams",
     "Goal",
     "RewardConfig",
+    "ScenarioError",
     "ScenarioSpec",
     "SpawnRegion",
 ]
@@ -29,6 +30,10 @@ __all__ = [
 LAYOUTS = ("roundabout", "intersection", "merge", "exit", "highway")
 Layout = Literal["roundabout", "intersection", "merge", "exit", "highway"]
 Edge = tuple[str, str]
+
+
+class ScenarioError(ConfigError):
+    """A scenario cannot be built as specified (e.g. its vehicles cannot be placed)."""
 
 
 class ClippedGaussian(Config):
@@ -63,7 +68,7 @@ class SpawnRegion(Config):
 
     def capacity(self, min_gap: float) -> int:
         """How many vehicles this region can hold at least ``min_gap`` metres apart."""
-        return len(self.lanes) * (int(math.floor(2 * self.longitudinal.clip / min_gap)) + 1)
+        return len(self.lanes) * (math.floor(2 * self.longitudinal.clip / min_gap) + 1)
 
 
 class Goal(Config):
@@ -160,4 +165,4 @@ class ScenarioSpec(Config):
     @property
     def max_steps(self) -> int:
         """Policy steps before the episode is truncated."""
-        return int(math.ceil(self.duration * self.policy_frequency))
+        return math.ceil(self.duration * self.policy_frequency)

@@ -9,10 +9,12 @@ environments, whose resets write driver constants on shared classes.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from functools import cache
 from typing import Any
 
 import numpy as np
+from highway_env.envs.common.observation import OccupancyGridObservation
 from highway_env.envs.exit_env import ExitEnv
 from highway_env.envs.highway_env import HighwayEnv
 from highway_env.envs.intersection_env import IntersectionEnv
@@ -23,14 +25,15 @@ from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import MDPVehicle
 
 from latentdrive.actions import META_ACTIONS
-from latentdrive.scenarios.spec import DriverParams, ScenarioSpec, SpawnRegion
+from latentdrive.config import ObservationConfig
+from latentdrive.scenarios.spec import DriverParams, ScenarioError, ScenarioSpec, SpawnRegion
 from latentdrive.scene import Kind, RoadRaster, Scene, rasterize_strips
 
 __all__ = ["HighwayBackend", "ScenarioError"]
 
 # Road builders of highway-env, called on a small host object rather than on a constructed
 # env: constructing IntersectionEnv resets it, and its reset mutates IDMVehicle's class.
-_ROAD_BUILDERS: dict[str, tuple[type, str]] = {
+_ROAD_BUILDERS: dict[str, tuple[Any, str]] = {
     "roundabout": (RoundaboutEnv, "_make_road"),
     "intersection": (IntersectionEnv, "_make_road"),
     "merge": (MergeEnv, "_make_road"),
@@ -58,10 +61,6 @@ _CLEARANCE = 6.0
 Placed = tuple[np.ndarray, tuple[str, str, int]]
 
 
-class ScenarioError(ValueError):
-    """A scenario cannot be built as specified (e.g. vehicles cannot be placed)."""
-
-
 class _RoadHost:
     """Just enough of an AbstractEnv for highway-env's road builders."""
 
@@ -69,24 +68,20 @@ class _RoadHost:
         self.config = config
         self.np_random = np_random
         self.road: Road | None = None
+        self.vehicle: Any = None
 
 
-def _road_config(spec: ScenarioSpec) -> dict[str, Any]:
-    env_cls, _ = _ROAD_BUILDERS[spec.layout]
+def _road_config(layout: str, lanes_count: int) -> dict[str, Any]:
+    env_cls, _ = _ROAD_BUILDERS[layout]
     config: dict[str, Any] = env_cls.default_config()
-    config.update(
-        lanes_count=spec.lanes_count,
-        simulation_frequency=spec.simulation_frequency,
-        policy_frequency=spec.policy_frequency,
-        show_trajectories=False,
-    )
+    config.update(lanes_count=lanes_count, show_trajectories=False)
     return config
 
 
-def build_road(spec: ScenarioSpec, rng: np.random.Generator) -> Road:
-    """A fresh highway-env Road of the spec's layout, drawing from ``rng``."""
-    env_cls, method = _ROAD_BUILDERS[spec.layout]
-    host = _RoadHost(_road_config(spec), rng)
+def build_road(layout: str, lanes_count: int, rng: np.random.Generator) -> Road:
+    """A fresh highway-env Road of a layout, drawing from ``rng``."""
+    env_cls, method = _ROAD_BUILDERS[layout]
+    host = _RoadHost(_road_config(layout, lanes_count), rng)
     getattr(env_cls, method)(host)
     assert host.road is not None
     return host.road
@@ -99,8 +94,7 @@ def layout_raster(layout: str, lanes_count: int, resolution: float = 0.5) -> Roa
     Every lane is sampled along its centreline every ``resolution/2`` metres; the samples
     are handed to :func:`latentdrive.scene.rasterize_strips`.
     """
-    spec_like = ScenarioSpec.model_construct(layout=layout, lanes_count=lanes_count, simulation_frequency=15, policy_frequency=1)
-    road = build_road(spec_like, np.random.default_rng(0))
+    road = build_road(layout, lanes_count, np.random.default_rng(0))
     centers, headings, half = [], [], []
     for lanes in (lanes for tos in road.network.graph.values() for lanes in tos.values()):
         for lane in lanes:
@@ -147,7 +141,7 @@ class HighwayBackend:
         # forks, regulation); keep it separate from placement so adding one vehicle type
         # does not shift the other's randomness.
         road_rng = np.random.default_rng([seed, 1])
-        self.road = build_road(self.spec, road_rng)
+        self.road = build_road(self.spec.layout, self.spec.lanes_count, road_rng)
         self.avs, self._goal_nodes = [], []
         placed: list[Placed] = []
         for i in range(self.spec.n_av):
@@ -275,3 +269,34 @@ class HighwayBackend:
             road=self.raster,
             time=self.time,
         )
+
+    # -- reference observation, for benchmarks ---------------------------------------
+    def occupancy_grid(self, cfg: ObservationConfig) -> Callable[[], np.ndarray]:
+        """highway-env's OccupancyGridObservation over the same cells as ``cfg``'s VelocityMap.
+
+        Returns a function that observes the current instant once per AV, giving
+        ``(n_av, 4, W, H)`` (features presence, vx, vy, on_road; grid aligned with each
+        AV's axes, ``cfg.width × cfg.height`` cells of ``cfg.resolution`` metres). Used by
+        ``latentdrive bench`` as the per-agent-frame cost of highway-env's grid.
+        """
+        assert self.road is not None, "reset() first"
+        host = _RoadHost(_road_config(self.spec.layout, self.spec.lanes_count), np.random.default_rng(0))
+        host.road = self.road
+        ahead = cfg.width * cfg.resolution - cfg.behind
+        half = cfg.height * cfg.resolution / 2
+        grid = OccupancyGridObservation(
+            host,
+            features=["presence", "vx", "vy", "on_road"],
+            grid_size=((-cfg.behind, ahead), (-half, half)),
+            grid_step=(cfg.resolution, cfg.resolution),
+            align_to_vehicle_axes=True,
+        )
+
+        def observe() -> np.ndarray:
+            out = []
+            for av in self.avs:
+                grid.observer_vehicle = av
+                out.append(grid.observe())
+            return np.stack(out)
+
+        return observe

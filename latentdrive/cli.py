@@ -1,0 +1,127 @@
+"""The ``latentdrive`` command line: one console script, one sub-command per job.
+
+Errors caused by input (unknown scenario, bad config value, corrupt file) print one line
+``latentdrive: error: ...`` and exit with status 2; nothing already written is removed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from latentdrive.config import LatentDriveError, parse_override_args
+
+__all__ = ["main"]
+
+
+def _cmd_scenarios(args: argparse.Namespace) -> int:
+    from latentdrive.scenarios import SCENARIOS, get_spec
+
+    print(f"{'scenario':<13}{'layout':<13}{'AVs':>4}{'HVs':>5}{'duration s':>11}{'sim/policy Hz':>14}  {'AV target speeds m/s':<22}mission")
+    for name in SCENARIOS:
+        s = get_spec(name)
+        goal = f"reach {'own destination' if s.av_spawn[0].destinations else '/'.join(s.goal.nodes)}"
+        goal += f" (+{s.goal.longitudinal:g} m)"
+        speeds = ", ".join(f"{v:g}" for v in s.av_target_speeds)
+        print(f"{name:<13}{s.layout:<13}{s.n_av:>4}{s.n_hv:>5}{s.duration:>11g}"
+              f"{f'{s.simulation_frequency}/{s.policy_frequency}':>14}  {speeds:<22}{goal}")
+    if args.verbose:
+        for name in SCENARIOS:
+            print(f"\n# {name}\n" + json.dumps(get_spec(name).model_dump(mode="json"), indent=1))
+    return 0
+
+
+def _cmd_show(args: argparse.Namespace) -> int:
+    import numpy as np
+
+    from latentdrive.env import make_env
+    from latentdrive.viz import save_show_figure
+
+    overrides = parse_override_args(args.overrides)
+    env = make_env(args.scenario, **overrides)
+    if not 0 <= args.agent < env.spec_.n_av:
+        raise LatentDriveError(f"--agent {args.agent} is out of range: the scenario has {env.spec_.n_av} AVs")
+    rng = np.random.default_rng(args.seed)
+    obs, info = env.reset(seed=args.seed)
+    scenes, observations = [info["scene"]], [obs]
+    for _ in range(args.steps - 1):
+        action = np.ones(env.spec_.n_av, dtype=np.int64) if args.policy == "idle" else rng.integers(0, 5, env.spec_.n_av)
+        obs, _, terminated, truncated, info = env.step(action)
+        scenes.append(info["scene"])
+        observations.append(obs)
+        if terminated or truncated:
+            break
+    out = save_show_figure(args.out, scenes, observations, env.config.observation,
+                           title=f"{env.spec_.name}: agent {args.agent}, seed {args.seed}, {args.policy} policy",
+                           agent=args.agent)
+    print(f"wrote {out} ({len(scenes)} steps)")
+    return 0
+
+
+def _cmd_bench(args: argparse.Namespace) -> int:
+    from latentdrive.bench import format_table, run_bench
+    from latentdrive.config import ObservationConfig, validate
+    from latentdrive.scenarios import SCENARIOS, get_spec
+
+    names = args.scenarios.split(",") if args.scenarios else list(SCENARIOS)
+    for name in names:
+        get_spec(name)  # unknown names fail before any work
+    if args.steps < 1:
+        raise LatentDriveError("--steps must be at least 1")
+    cfg = validate(ObservationConfig, parse_override_args(args.overrides), prefix="observation.")
+    print(f"benchmarking {len(names)} scenario(s), {args.steps} steps each ...", file=sys.stderr)
+    rows = run_bench(names, steps=args.steps, seed=args.seed, obs_cfg=cfg,
+                     progress=lambda line: print(line, file=sys.stderr))
+    print(format_table(rows, cfg))
+    if args.json:
+        Path(args.json).write_text(json.dumps([r.as_dict() for r in rows], indent=1))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="latentdrive", description=__doc__.splitlines()[0])
+    sub = p.add_subparsers(dest="command", required=True)
+
+    s = sub.add_parser("scenarios", help="list the scenarios and their settings")
+    s.add_argument("-v", "--verbose", action="store_true", help="print every spec in full")
+    s.set_defaults(func=_cmd_scenarios)
+
+    s = sub.add_parser("show", help="draw a scenario beside an agent's four VelocityMap channels")
+    s.add_argument("scenario", help="scenario name or spec .yaml")
+    s.add_argument("--out", required=True, help="PNG file to write")
+    s.add_argument("--steps", type=int, default=4, help="policy steps to show (default 4)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--policy", choices=["random", "idle"], default="random")
+    s.add_argument("--agent", type=int, default=0, help="which AV's view to show")
+    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override, repeatable (--set n_av=3 --set observation.frames=2)")
+    s.set_defaults(func=_cmd_show)
+
+    s = sub.add_parser("bench", help="env steps/s and observation cost vs highway-env's OccupancyGrid")
+    s.add_argument("--scenarios", default="", help="comma-separated names (default: all five)")
+    s.add_argument("--steps", type=int, default=50, help="policy steps per scenario (default 50)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--json", default="", help="also write the rows to this JSON file")
+    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="observation override, repeatable (--set height=64 --set resolution=1.0)")
+    s.set_defaults(func=_cmd_bench)
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.func(args))
+    except LatentDriveError as exc:
+        print(f"latentdrive: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("latentdrive: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,27 @@
+"""Shared test helpers: small rollouts with fixed action scripts."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+
+from latentdrive.env import make_env
+
+
+def rollout_digest(scenario: str, seed: int = 0, steps: int = 6, **overrides: object) -> str:
+    """Hash of the observations, rewards and scenes of a seeded rollout with a fixed script."""
+    env = make_env(scenario, **overrides)
+    obs, info = env.reset(seed=seed)
+    h = hashlib.sha256(obs.tobytes())
+    h.update(info["scene"].position.tobytes())
+    script = np.random.default_rng(1234)
+    for _ in range(steps):
+        obs, _reward, terminated, truncated, info = env.step(script.integers(0, 5, env.spec_.n_av))
+        h.update(obs.tobytes())
+        h.update(np.asarray(info["agent_rewards"]).tobytes())
+        h.update(info["scene"].position.tobytes())
+        h.update(info["scene"].speed.tobytes())
+        if terminated or truncated:
+            break
+    return h.hexdigest()
