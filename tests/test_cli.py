@@ -1,0 +1,58 @@
+import json
+import subprocess
+import sys
+
+import pytest
+
+from latentdrive.cli import main
+
+
+def run_cli(*args):
+    """Run the console entry point in a subprocess, as a user would."""
+    return subprocess.run([sys.executable, "-m", "latentdrive.cli", *args], capture_output=True, text=True)
+
+
+def test_scenarios_lists_all_five(capsys):
+    assert main(["scenarios"]) == 0
+    out = capsys.readouterr().out
+    for name in ("roundabout", "intersection", "merge", "exit", "highway"):
+        assert name in out
+
+
+@pytest.mark.parametrize(
+    ("args", "needle"),
+    [
+        (["show", "lake", "--out", "x.png"], "unknown scenario 'lake'"),
+        (["show", "merge", "--out", "x.png", "--set", "n_av=99"], "scenario.n_av"),
+        (["show", "merge", "--out", "x.png", "--set", "observation.frames=0"], "observation.frames"),
+        (["show", "merge", "--out", "x.png", "--set", "colour=red"], "scenario.colour: unknown key"),
+        (["show", "merge", "--out", "x.png", "--set", "n_av"], "expected key=value"),
+        (["bench", "--scenarios", "merge,lake"], "unknown scenario 'lake'"),
+    ],
+)
+def test_bad_input_is_one_line_and_nonzero(args, needle, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "latentdrive.cli", *args], capture_output=True,
+                          text=True, cwd=tmp_path)
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("latentdrive: error:") and needle in lines[0]
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_show_writes_a_png(tmp_path):
+    out = tmp_path / "fig" / "merge.png"
+    assert main(["show", "merge", "--out", str(out), "--steps", "2",
+                 "--set", "observation.height=16", "--set", "observation.width=32"]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_bench_prints_ratio_and_json(tmp_path, capsys):
+    path = tmp_path / "bench.json"
+    assert main(["bench", "--scenarios", "merge", "--steps", "3", "--json", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "grid/obs" in out and "merge" in out
+    (row,) = json.loads(path.read_text())
+    assert row["scenario"] == "merge" and row["steps"] == 3
+    assert row["grid_over_obs"] == pytest.approx(row["grid_ms_per_agent_frame"] / row["obs_ms_per_agent_frame"])
+    assert row["sim_steps_per_s"] > 0
