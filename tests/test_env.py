@@ -74,7 +74,7 @@ def test_same_seed_same_everything_other_seed_differs():
 def test_noise_is_seeded_and_clean_observation_is_noise_free():
     env = make_env("highway", clean_observation=True, **SMALL)
     obs, info = env.reset(seed=5)
-    obs2, info2 = env.reset(seed=5)
+    obs2, _ = env.reset(seed=5)
     assert np.array_equal(obs, obs2)
     clean = make_env("highway", observation={**SMALL["observation"], "noise": {
         "position_std": 0, "speed_std": 0, "heading_std": 0, "miss_prob": 0}})
@@ -124,9 +124,9 @@ def test_no_cross_scenario_leakage():
 def test_overrides_route_to_the_right_config():
     cfg = make_env_config("merge", n_av=3, **{"observation.frames": 2}, reward={"speed": 0.5})
     assert cfg.scenario.n_av == 3 and cfg.observation.frames == 2 and cfg.reward.speed == 0.5
-    with pytest.raises(ConfigError, match="scenario.nav"):
+    with pytest.raises(ConfigError, match=r"scenario\.nav"):
         make_env_config("merge", nav=3)
-    with pytest.raises(ConfigError, match="observation.resolution"):
+    with pytest.raises(ConfigError, match=r"observation\.resolution"):
         make_env_config("merge", observation={"resolution": -1})
 
 

@@ -115,6 +115,25 @@ def _set_driver(vehicle: IDMVehicle, params: DriverParams, rng: np.random.Genera
     vehicle.timer = float(np.sum(vehicle.position) * np.pi) % params.lane_change_delay
 
 
+def _check_regions(spec: ScenarioSpec, road: Road) -> None:
+    """Every spawn region names an edge and lanes of the layout, and its window lies on the lane."""
+    graph = road.network.graph
+    for field in ("av_spawn", "hv_spawn"):
+        for i, region in enumerate(getattr(spec, field)):
+            where = f"scenario {spec.name!r}: {field}[{i}]"
+            lanes = graph.get(region.edge[0], {}).get(region.edge[1])
+            if lanes is None:
+                raise ScenarioError(f"{where}: edge {region.edge} is not in the {spec.layout} layout")
+            if max(region.lanes) >= len(lanes) or min(region.lanes) < 0:
+                raise ScenarioError(f"{where}: edge {region.edge} has lanes 0..{len(lanes) - 1}, not {region.lanes}")
+            g = region.longitudinal
+            length = min(lanes[k].length for k in region.lanes)
+            if g.mean - g.clip < 0 or g.mean + g.clip > length:
+                raise ScenarioError(
+                    f"{where}: longitudinal window [{g.mean - g.clip:g}, {g.mean + g.clip:g}] m "
+                    f"leaves edge {region.edge} (length {length:g} m)")
+
+
 class HighwayBackend:
     """Runs one scenario on highway-env and reports each instant as a :class:`Scene`.
 
@@ -127,6 +146,7 @@ class HighwayBackend:
     def __init__(self, spec: ScenarioSpec) -> None:
         self.spec = spec
         self.raster = layout_raster(spec.layout, spec.lanes_count)
+        _check_regions(spec, build_road(spec.layout, spec.lanes_count, np.random.default_rng(0)))
         self.road: Road | None = None
         self.avs: list[MDPVehicle] = []
         self._goal_nodes: list[frozenset[str]] = []
@@ -157,13 +177,7 @@ class HighwayBackend:
 
     def _place(self, region: SpawnRegion, rng: np.random.Generator, placed: list[Placed], av: bool) -> None:
         assert self.road is not None
-        network = self.road.network
-        try:
-            lanes_on_edge = network.graph[region.edge[0]][region.edge[1]]
-        except KeyError:
-            raise ScenarioError(f"scenario {self.spec.name!r}: edge {region.edge} is not in the {self.spec.layout} layout") from None
-        if max(region.lanes) >= len(lanes_on_edge):
-            raise ScenarioError(f"scenario {self.spec.name!r}: edge {region.edge} has {len(lanes_on_edge)} lanes, spawn asks for lane {max(region.lanes)}")
+        lanes_on_edge = self.road.network.graph[region.edge[0]][region.edge[1]]
         for _attempt in range(64):
             lane_id = int(rng.choice(region.lanes))
             s = float(region.longitudinal.sample(rng)[0])
