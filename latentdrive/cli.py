@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from latentdrive.config import LatentDriveError, parse_override_args
+from latentdrive.data.cli import add_collect_parser
 
 __all__ = ["main"]
 
@@ -108,6 +109,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="observation override, repeatable (--set height=64 --set resolution=1.0)")
     s.set_defaults(func=_cmd_bench)
+
+    add_collect_parser(sub)
     return p
 
 

@@ -136,10 +136,10 @@ class NoiseConfig(Config):
     reproducible. Zeros everywhere give the clean observation.
     """
 
-    position_std: float = Field(0.5, ge=0.0, le=10.0, description="Std of the Gaussian jitter added to each other vehicle's x and y position, metres.")
-    speed_std: float = Field(0.5, ge=0.0, le=10.0, description="Std of the Gaussian jitter added to each vehicle's Frenet longitudinal speed, m/s.")
+    position_std: float = Field(0.75, ge=0.0, le=10.0, description="Std of the Gaussian jitter added to each other vehicle's x and y position, metres.")
+    speed_std: float = Field(1.0, ge=0.0, le=10.0, description="Std of the Gaussian jitter added to each vehicle's Frenet longitudinal speed, m/s.")
     heading_std: float = Field(0.02, ge=0.0, le=1.0, description="Std of the Gaussian jitter added to each other vehicle's heading, radians.")
-    miss_prob: float = Field(0.05, ge=0.0, le=1.0, description="Probability that another vehicle is missed (not drawn) in a frame.")
+    miss_prob: float = Field(0.1, ge=0.0, le=1.0, description="Probability that another vehicle is missed (not drawn) in a frame.")
 
 
 class ObservationConfig(Config):

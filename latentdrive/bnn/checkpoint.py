@@ -1,0 +1,390 @@
+"""Training checkpoints as safetensors files, written atomically, read without unpickling.
+
+One file holds everything needed to continue a run exactly where it stopped:
+
+- tensors ``model/<name>``: the model's ``state_dict``;
+- tensors ``optim/<param index>/<key>``: the optimizer's per-parameter tensor state
+  (e.g. Adam's ``exp_avg``, ``exp_avg_sq``, ``step``);
+- tensor ``rng/torch``: a ``torch.Generator`` state (uint8), when one is given;
+- tensors ``extra/<name>``: caller tensors (e.g. CUDA generator states);
+- header metadata (strings): ``format``, ``version``, ``digest`` (SHA-256 over every
+  tensor's name, dtype, shape and bytes, which catches corruption the safetensors header
+  check cannot see) and ``state``, a JSON document with the step, the epoch, the caller's
+  config, the optimizer's class, param groups and non-tensor per-parameter state, the
+  numpy ``Generator.bit_generator.state`` and caller ``extra`` values.
+
+Any failure to read a checkpoint, a foreign or corrupt file, or one made for another
+architecture raises :class:`CheckpointError`, a ``ValueError`` with a one-line message
+that starts with the file's path. Nothing is loaded into the model or optimizer unless the
+whole checkpoint matches them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import tempfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.torch import load as st_load
+from safetensors.torch import save as st_save
+from torch import nn
+
+from latentdrive.config import LatentDriveError
+
+__all__ = [
+    "FORMAT",
+    "VERSION",
+    "CheckpointError",
+    "CheckpointInfo",
+    "atomic_write_bytes",
+    "atomic_write_text",
+    "load_checkpoint",
+    "read_checkpoint",
+    "save_checkpoint",
+]
+
+FORMAT = "latentdrive.checkpoint"
+VERSION = 1
+
+
+class CheckpointError(LatentDriveError, ValueError):
+    """A checkpoint cannot be used; the one-line message starts with the file's path."""
+
+
+@dataclass(frozen=True)
+class CheckpointInfo:
+    """What a checkpoint holds besides the model and optimizer tensors."""
+
+    path: Path
+    step: int
+    epoch: int
+    config: dict[str, Any]
+    extra: dict[str, Any]
+    extra_tensors: dict[str, torch.Tensor] = field(default_factory=dict)
+
+
+# ---------------------------------------------------------------------------------------
+# Atomic writes
+
+
+def _umask() -> int:
+    # The umask can only be read by setting it; set it straight back.
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
+    """Write ``data`` to ``path`` via a temporary file in the same directory and ``os.replace``.
+
+    Readers see the old file or the complete new one, never a partial write; the data is
+    fsynced before the rename so a crash cannot leave a renamed but empty file.
+    """
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
+    try:
+        # mkstemp creates the file private (0600); give it the permissions a plain open()
+        # would, so that replacing a file does not change who may read it.
+        with contextlib.suppress(OSError):
+            os.chmod(tmp, 0o666 & ~_umask())
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, p)
+    except BaseException:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(tmp)
+        raise
+    # Persist the rename itself; not every platform allows fsync on a directory.
+    with contextlib.suppress(OSError):
+        dfd = os.open(p.parent, os.O_RDONLY)
+        try:
+            os.fsync(dfd)
+        finally:
+            os.close(dfd)
+    return p
+
+
+def atomic_write_text(path: str | Path, text: str) -> Path:
+    """:func:`atomic_write_bytes` for UTF-8 text."""
+    return atomic_write_bytes(path, text.encode("utf-8"))
+
+
+# ---------------------------------------------------------------------------------------
+# JSON helpers
+
+
+def _to_json(obj: Any) -> Any:
+    """JSON-ready copy of RNG / optimizer state; numpy arrays and scalars become tagged lists."""
+    if isinstance(obj, np.ndarray):
+        return {"__ndarray__": obj.tolist(), "dtype": str(obj.dtype)}
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, Mapping):
+        return {str(k): _to_json(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [_to_json(v) for v in obj]
+    if obj is None or isinstance(obj, bool | int | float | str):
+        return obj
+    raise TypeError(f"cannot store a value of type {type(obj).__name__} in a checkpoint")
+
+
+def _from_json(obj: Any) -> Any:
+    if isinstance(obj, dict):
+        if set(obj) == {"__ndarray__", "dtype"}:
+            return np.asarray(obj["__ndarray__"], dtype=obj["dtype"])
+        return {k: _from_json(v) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_from_json(v) for v in obj]
+    return obj
+
+
+def _digest(tensors: Mapping[str, torch.Tensor]) -> str:
+    h = hashlib.sha256()
+    for name in sorted(tensors):
+        t = tensors[name]
+        h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
+        h.update(t.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
+def _one_line(text: object) -> str:
+    lines = str(text).strip().splitlines()
+    return lines[0] if lines else type(text).__name__
+
+
+# ---------------------------------------------------------------------------------------
+# Save
+
+
+def save_checkpoint(
+    path: str | Path,
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer | None = None,
+    *,
+    step: int,
+    epoch: int,
+    config: Mapping[str, Any] | None = None,
+    torch_generator: torch.Generator | None = None,
+    numpy_generator: np.random.Generator | None = None,
+    extra: Mapping[str, Any] | None = None,
+    extra_tensors: Mapping[str, torch.Tensor] | None = None,
+) -> Path:
+    """Write a checkpoint atomically to ``path`` (conventionally ``*.safetensors``).
+
+    ``step`` counts optimizer steps taken, ``epoch`` epochs completed. ``config`` and
+    ``extra`` must be JSON-serializable mappings (pydantic configs: ``model_dump(mode="json")``).
+    """
+    tensors: dict[str, torch.Tensor] = {}
+    # Clone so that tensors sharing storage (tied weights, views) serialize independently.
+    for name, t in model.state_dict().items():
+        tensors[f"model/{name}"] = t.detach().cpu().clone().contiguous()
+
+    optim_json: dict[str, Any] | None = None
+    if optimizer is not None:
+        sd = optimizer.state_dict()
+        scalar_state: dict[str, dict[str, Any]] = {}
+        for pid, st in sd["state"].items():
+            for key, val in st.items():
+                if isinstance(val, torch.Tensor):
+                    tensors[f"optim/{pid}/{key}"] = val.detach().cpu().clone().contiguous()
+                else:
+                    scalar_state.setdefault(str(pid), {})[key] = _to_json(val)
+        optim_json = {
+            "class": type(optimizer).__name__,
+            "param_groups": _to_json(sd["param_groups"]),
+            "state_ids": [int(pid) for pid in sd["state"]],
+            "scalar_state": scalar_state,
+        }
+
+    if torch_generator is not None:
+        tensors["rng/torch"] = torch_generator.get_state().clone()
+    for name, t in (extra_tensors or {}).items():
+        tensors[f"extra/{name}"] = t.detach().cpu().clone().contiguous()
+
+    state = {
+        "step": int(step),
+        "epoch": int(epoch),
+        "config": _to_json(dict(config or {})),
+        "optimizer": optim_json,
+        "numpy_rng": (
+            None if numpy_generator is None else _to_json(numpy_generator.bit_generator.state)
+        ),
+        "extra": _to_json(dict(extra or {})),
+    }
+    metadata = {
+        "format": FORMAT,
+        "version": str(VERSION),
+        "digest": _digest(tensors),
+        "state": json.dumps(state, sort_keys=True),
+    }
+    return atomic_write_bytes(path, st_save(tensors, metadata=metadata))
+
+
+# ---------------------------------------------------------------------------------------
+# Load
+
+
+def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:
+    """Read and verify a checkpoint: ``(tensors by name, state JSON)``; nothing is loaded anywhere.
+
+    Raises :class:`CheckpointError` for a missing, foreign, truncated or corrupt file.
+    """
+    p = Path(path)
+
+    def fail(reason: str) -> CheckpointError:
+        return CheckpointError(f"{p}: {reason}")
+
+    try:
+        data = p.read_bytes()
+    except OSError as exc:
+        raise fail(f"cannot read checkpoint ({exc.strerror or _one_line(exc)})") from None
+    # The safetensors layout: 8-byte little-endian header length, JSON header, tensor data.
+    if len(data) < 8:
+        raise fail("not a safetensors file (too short)")
+    n = int.from_bytes(data[:8], "little")
+    if n > len(data) - 8:
+        raise fail("not a safetensors file (bad header length; truncated or foreign file)")
+    try:
+        header = json.loads(data[8 : 8 + n])
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        raise fail("not a safetensors file (unreadable header)") from None
+    meta = header.get("__metadata__") if isinstance(header, dict) else None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise fail("not a latentdrive checkpoint (missing format metadata)")
+    if meta.get("version") != str(VERSION):
+        raise fail(f"checkpoint format version {meta.get('version')!r}, expected {VERSION}")
+    try:
+        tensors = st_load(data)
+    except Exception as exc:  # the safetensors parser raises its own error types
+        raise fail(f"corrupt checkpoint ({_one_line(exc)})") from None
+    if _digest(tensors) != meta.get("digest"):
+        raise fail("corrupt checkpoint (checksum mismatch)")
+    try:
+        state = json.loads(meta["state"])
+        int(state["step"])
+        int(state["epoch"])
+    except (KeyError, TypeError, ValueError):
+        raise fail("corrupt checkpoint (unreadable state metadata)") from None
+    return tensors, state
+
+
+def _describe_mismatch(
+    file_sd: Mapping[str, torch.Tensor], model_sd: Mapping[str, torch.Tensor]
+) -> str:
+    missing = sorted(set(model_sd) - set(file_sd))
+    unexpected = sorted(set(file_sd) - set(model_sd))
+    parts = []
+    if missing:
+        parts.append(f"missing {', '.join(missing[:3])}{' …' if len(missing) > 3 else ''}")
+    if unexpected:
+        parts.append(f"unexpected {', '.join(unexpected[:3])}{' …' if len(unexpected) > 3 else ''}")
+    for name in sorted(set(file_sd) & set(model_sd)):
+        a, b = tuple(file_sd[name].shape), tuple(model_sd[name].shape)
+        if a != b:
+            parts.append(f"{name} has shape {a} in the file but {b} in the model")
+            break
+    return "; ".join(parts)
+
+
+def load_checkpoint(
+    path: str | Path,
+    model: nn.Module,
+    optimizer: torch.optim.Optimizer | None = None,
+    *,
+    torch_generator: torch.Generator | None = None,
+    numpy_generator: np.random.Generator | None = None,
+) -> CheckpointInfo:
+    """Load a checkpoint written by :func:`save_checkpoint` into ``model`` (and the rest).
+
+    ``optimizer``, ``torch_generator`` and ``numpy_generator`` are restored in place when
+    given; the file must then hold their state. Tensors are copied onto the devices of the
+    model's parameters. Raises :class:`CheckpointError` when the file is unreadable, or
+    when its model or optimizer differs in architecture from the ones given; in that case
+    nothing has been modified.
+    """
+    p = Path(path)
+
+    def fail(reason: str) -> CheckpointError:
+        return CheckpointError(f"{p}: {reason}")
+
+    tensors, state = read_checkpoint(p)
+    model_sd = model.state_dict()
+    file_sd = {k[len("model/"):]: v for k, v in tensors.items() if k.startswith("model/")}
+    mismatch = _describe_mismatch(file_sd, model_sd)
+    if mismatch:
+        raise fail(f"checkpoint architecture differs from the model: {mismatch}")
+
+    optim_sd: dict[str, Any] | None = None
+    if optimizer is not None:
+        oj = state.get("optimizer")
+        if not oj:
+            raise fail("checkpoint holds no optimizer state")
+        if oj.get("class") != type(optimizer).__name__:
+            have, want = type(optimizer).__name__, oj.get("class")
+            raise fail(f"optimizer is {have} but the checkpoint holds {want}")
+        groups = oj["param_groups"]
+        own = optimizer.param_groups
+        if len(groups) != len(own) or any(
+            len(g["params"]) != len(o["params"]) for g, o in zip(groups, own, strict=False)
+        ):
+            raise fail("optimizer parameter groups differ from the checkpoint's")
+        # Map the file's parameter ids onto the live parameters to check state shapes.
+        params = [q for g in own for q in g["params"]]
+        ids = [i for g in groups for i in g["params"]]
+        by_id = dict(zip(ids, params, strict=True))
+        opt_state: dict[int, dict[str, Any]] = {}
+        for pid in oj["state_ids"]:
+            opt_state[int(pid)] = dict(_from_json(oj["scalar_state"].get(str(pid), {})))
+        for name, t in tensors.items():
+            if not name.startswith("optim/"):
+                continue
+            _, pid_s, key = name.split("/", 2)
+            pid = int(pid_s)
+            if pid not in opt_state or pid not in by_id:
+                raise fail(f"optimizer state for unknown parameter {pid}")
+            q = by_id[pid]
+            if t.ndim > 0 and tuple(t.shape) != tuple(q.shape):
+                raise fail(
+                    f"optimizer state {key} of parameter {pid} has shape {tuple(t.shape)} "
+                    f"but the parameter has {tuple(q.shape)}"
+                )
+            opt_state[pid][key] = t
+        optim_sd = {"state": opt_state, "param_groups": _from_json(groups)}
+
+    if torch_generator is not None and "rng/torch" not in tensors:
+        raise fail("checkpoint holds no torch generator state")
+    if numpy_generator is not None and state.get("numpy_rng") is None:
+        raise fail("checkpoint holds no numpy generator state")
+
+    # Everything matches: only now modify the caller's objects.
+    try:
+        model.load_state_dict(file_sd, strict=True)
+        if optimizer is not None and optim_sd is not None:
+            optimizer.load_state_dict(optim_sd)
+        if torch_generator is not None:
+            torch_generator.set_state(tensors["rng/torch"])
+        if numpy_generator is not None:
+            numpy_generator.bit_generator.state = _from_json(state["numpy_rng"])
+    except (RuntimeError, ValueError, TypeError, KeyError) as exc:
+        raise fail(f"cannot restore checkpoint ({_one_line(exc)})") from None
+
+    extra_tensors = {k[len("extra/"):]: v for k, v in tensors.items() if k.startswith("extra/")}
+    return CheckpointInfo(
+        path=p,
+        step=int(state["step"]),
+        epoch=int(state["epoch"]),
+        config=dict(state.get("config") or {}),
+        extra=dict(_from_json(state.get("extra") or {})),
+        extra_tensors=extra_tensors,
+    )

@@ -1,0 +1,573 @@
+"""Training the bottleneck network (BNN): denoising reconstruction, then mixed-scenario training.
+
+Two phases over one global epoch counter (paper section V-B):
+
+1. ``pretrain`` (epochs ``[0, pretrain_epochs)``): the plain denoising reconstruction loss
+   on shuffled mixed-scenario data.
+2. ``mixed`` (the next ``mixed_epochs``): the same loss plus ``λ · latent_regularizer``
+   (mean pairwise MMD² between the scenarios of a batch, :mod:`latentdrive.bnn.distance`)
+   on batches that hold every scenario. With the default ``λ = 0`` the phase differs from
+   pretraining only in its batches, which is the paper's regimen.
+
+Loss (paper eq. 11): the L2 error between the reconstructions of the *noisy* input and
+the three channel pairs of the *clean* observation, averaged over all elements
+``(B, 3, 2, T, H, W)`` rather than summed, so that its scale does not depend on batch or
+grid size (the sum is this mean times a constant; only the effective learning rate
+differs).
+
+Everything a run writes lives in ``run_dir``: ``config.json`` (resolved configs),
+``metrics.csv`` (a row every ``log_every`` steps and one per epoch), ``tb/`` (TensorBoard)
+and ``checkpoint.safetensors`` (written atomically after every epoch). ``resume=True``
+continues from the last checkpoint and, given the same batches per epoch, ends with the
+same weights as an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import io
+import json
+import os
+import resource
+import sys
+import time
+from collections.abc import Callable, Iterable, Iterator
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from pydantic import Field, field_validator
+from torch import Tensor
+
+from latentdrive.bnn.batch import BNNBatch
+from latentdrive.bnn.checkpoint import (
+    CheckpointError,
+    atomic_write_text,
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+)
+from latentdrive.bnn.distance import group_mmd2, latent_regularizer
+from latentdrive.config import Config, config_hash, validate
+from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
+
+__all__ = [
+    "CHECKPOINT_NAME",
+    "CONFIG_NAME",
+    "METRICS_NAME",
+    "BNNTrainConfig",
+    "evaluate_bnn",
+    "load_trained_bottleneck",
+    "reconstruction_loss",
+    "resolve_device",
+    "step_losses",
+    "train_bnn",
+]
+
+CHECKPOINT_NAME = "checkpoint.safetensors"
+CONFIG_NAME = "config.json"
+METRICS_NAME = "metrics.csv"
+
+Phase = Literal["pretrain", "mixed"]
+
+# Fields that may change between a run and its resumption: they extend the schedule or
+# change logging only, not the computation of the epochs already done.
+_RESUMABLE_CHANGES = frozenset(
+    {"pretrain_epochs", "mixed_epochs", "log_every", "device", "num_threads"}
+)
+
+_METRIC_COLUMNS = (
+    "kind", "phase", "epoch", "step", "loss", "recon", "reg", "lr",
+    "val_loss", "val_mmd", "samples_per_s", "peak_rss_mb", "peak_cuda_mb", "elapsed_s",
+)
+
+
+class BNNTrainConfig(Config):
+    """Training of the bottleneck network."""
+
+    pretrain_epochs: int = Field(
+        10, ge=0, le=100_000,
+        description="Epochs of plain reconstruction training on shuffled mixed data "
+        "(phase 'pretrain').",
+    )
+    mixed_epochs: int = Field(
+        90, ge=0, le=100_000,
+        description="Epochs of training on batches holding every scenario, with the λ-weighted "
+        "scenario-distance term (phase 'mixed'). The paper trains 100 epochs in all.",
+    )
+    batch_size: int = Field(
+        64, ge=1, le=1 << 20,
+        description="Observations per batch, samples. The batch functions decide the batches; "
+        "array_batches_fn takes this value.",
+    )
+    lr: float = Field(1e-3, gt=0.0, le=1.0, description="AdamW learning rate, per step.")
+    weight_decay: float = Field(
+        0.0, ge=0.0, le=1.0,
+        description="AdamW decoupled weight decay, per step (multiplied by lr).",
+    )
+    lambda_distance: float = Field(
+        0.0, ge=0.0, le=1e6,
+        description="λ: weight of the latent scenario-distance regularizer (mean pairwise MMD², "
+        "dimensionless) in the mixed phase. 0 trains on reconstruction only.",
+    )
+    max_grad_norm: float = Field(
+        0.0, ge=0.0,
+        description="Clip the global gradient L2 norm to this value; 0 disables clipping.",
+    )
+    seed: int = Field(
+        0, ge=0, le=2**63 - 1,
+        description="Seed of the weight initialization and of the trainer's numpy generator.",
+    )
+    device: str = Field(
+        "auto", description="'auto' (CUDA if available, else CPU), 'cpu', 'cuda' or 'cuda:N'."
+    )
+    num_threads: int = Field(
+        0, ge=0, le=1024,
+        description="CPU threads for torch operations during the run (restored after); 0 keeps "
+        "torch's default. On a shared machine fewer threads than cores avoids oversubscription, "
+        "which can slow small models several-fold. Results may differ in the last bits "
+        "between thread counts.",
+    )
+    deterministic: bool = Field(
+        True,
+        description="Use deterministic algorithms (strict on CPU; warn-only on CUDA, where some "
+        "kernels have no deterministic variant).",
+    )
+    log_every: int = Field(
+        10, ge=1, description="Optimizer steps between metric rows in metrics.csv and TensorBoard."
+    )
+    val_mmd_samples: int = Field(
+        256, ge=2, le=100_000,
+        description="Validation latents per scenario (samples, drawn without replacement) used "
+        "for the validation scenario distance.",
+    )
+
+    @field_validator("device")
+    @classmethod
+    def _check_device(cls, v: str) -> str:
+        ok = v in ("auto", "cpu", "cuda") or (v.startswith("cuda:") and v[5:].isdigit())
+        if not ok:
+            raise ValueError(f"expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {v!r}")
+        return v
+
+    @property
+    def total_epochs(self) -> int:
+        """Pretraining plus mixed epochs."""
+        return self.pretrain_epochs + self.mixed_epochs
+
+    def phase(self, epoch: int) -> Phase:
+        """The phase of global epoch ``epoch`` (0-based)."""
+        return "pretrain" if epoch < self.pretrain_epochs else "mixed"
+
+
+def resolve_device(spec: str) -> torch.device:
+    """``'auto'`` → CUDA if available, else CPU; otherwise ``torch.device(spec)``."""
+    if spec == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(spec)
+
+
+# ---------------------------------------------------------------------------------------
+# Losses
+
+
+def step_losses(
+    model: BottleneckNetwork, batch: BNNBatch, lambda_distance: float = 0.0
+) -> tuple[Tensor, Tensor, Tensor]:
+    """The training objective of one batch: ``(total, recon, reg)`` scalar tensors.
+
+    ``recon`` is the mean squared error between ``model(batch.noisy)``'s reconstruction
+    ``(B, 3, 2, T, H, W)`` and ``model.pairs(batch.clean)``: the denoising target is the
+    clean observation. ``reg`` is :func:`latent_regularizer` of the latents ``(B, 3, d)``
+    grouped by ``batch.scenario``, computed only when ``lambda_distance > 0`` (else 0).
+    ``total = recon + lambda_distance · reg``.
+    """
+    recon_x, latents = model(batch.noisy)
+    recon = torch.mean((recon_x - model.pairs(batch.clean)) ** 2)
+    if lambda_distance > 0.0:
+        reg = latent_regularizer(latents, batch.scenario)
+        return recon + lambda_distance * reg, recon, reg
+    zero = recon.new_zeros(())
+    return recon, recon, zero
+
+
+def reconstruction_loss(model: BottleneckNetwork, batch: BNNBatch) -> Tensor:
+    """Mean squared error between the reconstruction of ``batch.noisy`` and the clean pairs."""
+    return step_losses(model, batch, 0.0)[1]
+
+
+@torch.no_grad()
+def evaluate_bnn(
+    model: BottleneckNetwork,
+    batches: Iterable[BNNBatch],
+    device: torch.device,
+    *,
+    mmd_samples: int = 256,
+    rng: np.random.Generator | None = None,
+) -> dict[str, float]:
+    """Validation metrics: ``val_loss`` and ``val_mmd``.
+
+    ``val_loss`` is the reconstruction loss averaged over all samples. ``val_mmd`` is the
+    mean pairwise MMD² between the scenarios' latent distributions (latents flattened to
+    ``(3d,)``), each scenario subsampled to ``mmd_samples`` vectors with ``rng`` (all of
+    them, first ones first, when ``rng`` is None); NaN with fewer than two scenarios.
+    """
+    was_training = model.training
+    model.eval()
+    total, count = 0.0, 0
+    lat: list[Tensor] = []
+    lab: list[Tensor] = []
+    for batch in batches:
+        b = batch.to(device)
+        recon_x, z = model(b.noisy)
+        loss = torch.mean((recon_x - model.pairs(b.clean)) ** 2)
+        n = b.noisy.shape[0]
+        total += float(loss) * n
+        count += n
+        lat.append(z.flatten(1).cpu())
+        lab.append(b.scenario.cpu())
+    model.train(was_training)
+    if count == 0:
+        raise ValueError("the validation batches are empty")
+    latents, labels = torch.cat(lat), torch.cat(lab)
+    keep: list[np.ndarray] = []
+    labels_np = labels.numpy()
+    for s in np.unique(labels_np):
+        idx = np.flatnonzero(labels_np == s)
+        if idx.shape[0] > mmd_samples:
+            if rng is None:
+                idx = idx[:mmd_samples]
+            else:
+                idx = np.sort(rng.choice(idx, mmd_samples, replace=False))
+        keep.append(idx)
+    sel = torch.from_numpy(np.concatenate(keep))
+    groups, d = group_mmd2(latents[sel].double(), labels[sel])
+    s_count = groups.shape[0]
+    if s_count < 2:
+        mmd = float("nan")
+    else:
+        iu = torch.triu_indices(s_count, s_count, offset=1)
+        mmd = float(d[iu[0], iu[1]].mean())
+    return {"val_loss": total / count, "val_mmd": mmd}
+
+
+# ---------------------------------------------------------------------------------------
+# Run bookkeeping
+
+
+def _peak_rss_mb() -> float:
+    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    # Linux reports KiB, macOS bytes.
+    return rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024
+
+
+@contextlib.contextmanager
+def _torch_settings(enabled: bool, device: torch.device, num_threads: int) -> Iterator[None]:
+    """Set deterministic algorithms and the thread count for a run; restore the process's after."""
+    prev = torch.are_deterministic_algorithms_enabled()
+    prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
+    prev_bench = torch.backends.cudnn.benchmark
+    prev_threads = torch.get_num_threads()
+    if num_threads > 0:
+        torch.set_num_threads(num_threads)
+    if enabled:
+        if device.type == "cuda":
+            # cuBLAS needs a fixed workspace for reproducible matmuls.
+            os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
+            torch.backends.cudnn.benchmark = False
+        torch.use_deterministic_algorithms(True, warn_only=device.type != "cpu")
+    try:
+        yield
+    finally:
+        torch.use_deterministic_algorithms(prev, warn_only=prev_warn)
+        torch.backends.cudnn.benchmark = prev_bench
+        torch.set_num_threads(prev_threads)
+
+
+class _Meter:
+    """Running sums of the (total, recon, reg) losses over batches, with samples and seconds."""
+
+    def __init__(self) -> None:
+        self.sums = np.zeros(3)
+        self.batches = 0
+        self.samples = 0
+        self.seconds = 0.0
+
+    def add(self, values: np.ndarray, samples: int, seconds: float) -> None:
+        self.sums += values
+        self.batches += 1
+        self.samples += samples
+        self.seconds += seconds
+
+    def means(self) -> tuple[float, float, float]:
+        m = self.sums / max(self.batches, 1)
+        return float(m[0]), float(m[1]), float(m[2])
+
+    def rate(self) -> float:
+        """Samples per second."""
+        return self.samples / max(self.seconds, 1e-9)
+
+
+class _MetricsLog:
+    """metrics.csv plus TensorBoard scalars."""
+
+    def __init__(self, run_dir: Path, resume_step: int | None) -> None:
+        self.path = run_dir / METRICS_NAME
+        if resume_step is not None and self.path.exists():
+            # Drop rows logged after the checkpoint: those steps are about to be redone.
+            with self.path.open(newline="") as f:
+                rows = [
+                    r for r in csv.DictReader(f)
+                    if r.get("step", "") and int(r["step"]) <= resume_step
+                ]
+            buf = io.StringIO()
+            w = csv.DictWriter(buf, fieldnames=_METRIC_COLUMNS, extrasaction="ignore")
+            w.writeheader()
+            w.writerows(rows)
+            atomic_write_text(self.path, buf.getvalue())
+        else:
+            atomic_write_text(self.path, ",".join(_METRIC_COLUMNS) + "\n")
+        self._file = self.path.open("a", newline="")
+        self._csv = csv.DictWriter(self._file, fieldnames=_METRIC_COLUMNS)
+        from torch.utils.tensorboard import SummaryWriter
+
+        # purge_step hides TensorBoard events logged after the checkpoint (or, on a fresh
+        # start, by an earlier attempt that never reached one).
+        self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_step or 0)
+
+    def write(self, row: dict[str, Any]) -> None:
+        self._csv.writerow({k: ("" if v is None else v) for k, v in row.items()})
+        self._file.flush()
+        prefix = "train" if row["kind"] == "step" else "epoch"
+        for key in ("loss", "recon", "reg", "val_loss", "val_mmd", "samples_per_s"):
+            v = row.get(key)
+            if v is not None and v == v:  # skip NaN
+                self.tb.add_scalar(f"{prefix}/{key}", float(v), int(row["step"]))
+
+    def close(self) -> None:
+        self._file.close()
+        self.tb.close()
+
+
+def _saved_configs(run_dir: Path) -> dict[str, Any] | None:
+    p = run_dir / CHECKPOINT_NAME
+    if not p.exists():
+        return None
+    return read_checkpoint(p)[1]["config"]
+
+
+def _check_resumable(
+    ckpt: Path, saved: dict[str, Any], cfg: BNNTrainConfig, model_cfg: BottleneckConfig
+) -> None:
+    if saved.get("model_hash") != config_hash(model_cfg):
+        raise CheckpointError(
+            f"{ckpt}: checkpoint was made with another model config; use a new run_dir"
+        )
+    old = saved.get("train", {})
+    new = cfg.model_dump(mode="json")
+    changed = sorted(k for k in new if k not in _RESUMABLE_CHANGES and old.get(k) != new[k])
+    if changed:
+        raise CheckpointError(
+            f"{ckpt}: checkpoint was made with other training settings ({', '.join(changed)}); "
+            "use a new run_dir"
+        )
+
+
+# ---------------------------------------------------------------------------------------
+# Training
+
+
+def train_bnn(
+    cfg: BNNTrainConfig,
+    model_cfg: BottleneckConfig,
+    train_batches_fn: Callable[[int], Iterable[BNNBatch]],
+    val_batches_fn: Callable[[], Iterable[BNNBatch]] | None,
+    run_dir: str | Path,
+    resume: bool = False,
+    progress: bool = True,
+) -> dict[str, float]:
+    """Train a :class:`BottleneckNetwork` and return the final epoch's metrics.
+
+    ``train_batches_fn(epoch)`` yields the :class:`BNNBatch` es of global epoch ``epoch``
+    (0-based; ``cfg.phase(epoch)`` tells its phase; mixed-phase batches should hold every
+    scenario). For a resumed run to match an uninterrupted one, its batches must depend
+    on ``epoch`` only (see :func:`latentdrive.bnn.batch.array_batches_fn`).
+    ``val_batches_fn()`` yields the validation batches (``None`` skips validation).
+
+    ``resume=True`` continues from ``run_dir/checkpoint.safetensors`` (a fresh start when
+    there is none); the model config and all training settings except the epoch counts,
+    ``log_every``, ``device`` and ``num_threads`` must equal the saved ones.
+    ``resume=False`` refuses a ``run_dir`` that already holds a checkpoint.
+
+    Returned metrics: ``epoch`` (completed), ``step``, ``train_loss``, ``train_recon``,
+    ``train_reg``, ``val_loss``, ``val_mmd`` (NaN without validation), ``samples_per_s``,
+    ``peak_rss_mb`` (and ``peak_cuda_mb`` on CUDA). A finished run resumed with the same
+    schedule trains no further and returns the saved metrics.
+    """
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    ckpt = run / CHECKPOINT_NAME
+    if ckpt.exists() and not resume:
+        raise FileExistsError(
+            f"{ckpt} exists; pass resume=True to continue it or choose a new run_dir"
+        )
+    device = resolve_device(cfg.device)
+    say: Callable[[str], None] = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
+
+    with _torch_settings(cfg.deterministic, device, cfg.num_threads):
+        # Seeding: the model's initial weights come from torch's global generator, the
+        # trainer's own draws (validation subsampling) from a numpy generator.
+        torch.manual_seed(cfg.seed)
+        np_rng = np.random.default_rng(cfg.seed)
+        model = BottleneckNetwork(model_cfg).to(device)
+        optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+
+        start_epoch, step = 0, 0
+        last: dict[str, float] = {}
+        resumed = False
+        if resume and ckpt.exists():
+            saved = read_checkpoint(ckpt)[1]["config"]
+            _check_resumable(ckpt, saved, cfg, model_cfg)
+            info = load_checkpoint(
+                ckpt, model, optimizer,
+                torch_generator=torch.default_generator, numpy_generator=np_rng,
+            )
+            cuda_states = sorted(k for k in info.extra_tensors if k.startswith("cuda_rng_"))
+            if device.type == "cuda" and len(cuda_states) == torch.cuda.device_count():
+                torch.cuda.set_rng_state_all(
+                    [info.extra_tensors[f"cuda_rng_{i}"] for i in range(len(cuda_states))]
+                )
+            start_epoch, step = info.epoch, info.step
+            last = {k: float(v) for k, v in info.extra.get("metrics", {}).items()}
+            resumed = True
+            say(f"resuming {ckpt} at epoch {start_epoch}, step {step}")
+        elif resume:
+            say(f"no checkpoint in {run}; starting a new run")
+
+        configs = {
+            "train": cfg.model_dump(mode="json"),
+            "model": model_cfg.model_dump(mode="json"),
+            "model_hash": config_hash(model_cfg),
+            "train_hash": config_hash(cfg),
+        }
+        atomic_write_text(run / CONFIG_NAME, json.dumps(configs, indent=2, sort_keys=True) + "\n")
+        log = _MetricsLog(run, step if resumed else None)
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+
+        try:
+            for epoch in range(start_epoch, cfg.total_epochs):
+                phase = cfg.phase(epoch)
+                lam = cfg.lambda_distance if phase == "mixed" else 0.0
+                model.train()
+                t_epoch = time.perf_counter()
+                ep, window = _Meter(), _Meter()
+                t_prev = time.perf_counter()
+                for batch in train_batches_fn(epoch):
+                    b = batch.to(device)
+                    total, recon, reg = step_losses(model, b, lam)
+                    if not torch.isfinite(total):
+                        raise FloatingPointError(
+                            f"non-finite loss {float(total)} at step {step} (epoch {epoch})"
+                        )
+                    optimizer.zero_grad(set_to_none=True)
+                    total.backward()
+                    if cfg.max_grad_norm > 0:
+                        torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.max_grad_norm)
+                    optimizer.step()
+                    step += 1
+                    # One device-to-host copy for the three logged values.
+                    vals = torch.stack([total, recon, reg]).detach().double().cpu().numpy()
+                    # Throughput counts fetching the batch as well as the step: the rate the
+                    # whole loop runs at (logging, validation and checkpoints excluded).
+                    dt = time.perf_counter() - t_prev
+                    ep.add(vals, int(b.noisy.shape[0]), dt)
+                    window.add(vals, int(b.noisy.shape[0]), dt)
+                    if step % cfg.log_every == 0:
+                        loss_m, recon_m, reg_m = window.means()
+                        log.write({
+                            "kind": "step", "phase": phase, "epoch": epoch, "step": step,
+                            "loss": loss_m, "recon": recon_m, "reg": reg_m,
+                            "lr": optimizer.param_groups[0]["lr"],
+                            "samples_per_s": window.rate(),
+                        })
+                        window = _Meter()
+                    t_prev = time.perf_counter()
+                if ep.batches == 0:
+                    raise ValueError(f"train_batches_fn({epoch}) yielded no batches")
+
+                val: dict[str, float] = {"val_loss": float("nan"), "val_mmd": float("nan")}
+                if val_batches_fn is not None:
+                    val = evaluate_bnn(
+                        model, val_batches_fn(), device,
+                        mmd_samples=cfg.val_mmd_samples, rng=np_rng,
+                    )
+                elapsed = time.perf_counter() - t_epoch
+                train_loss, train_recon, train_reg = ep.means()
+                last = {
+                    "epoch": float(epoch + 1),
+                    "step": float(step),
+                    "train_loss": train_loss,
+                    "train_recon": train_recon,
+                    "train_reg": train_reg,
+                    **val,
+                    "samples_per_s": ep.rate(),
+                    "peak_rss_mb": _peak_rss_mb(),
+                }
+                if device.type == "cuda":
+                    last["peak_cuda_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
+                log.write({
+                    "kind": "epoch", "phase": phase, "epoch": epoch, "step": step,
+                    "loss": last["train_loss"], "recon": last["train_recon"],
+                    "reg": last["train_reg"],
+                    "lr": optimizer.param_groups[0]["lr"], "val_loss": val["val_loss"],
+                    "val_mmd": val["val_mmd"], "samples_per_s": last["samples_per_s"],
+                    "peak_rss_mb": last["peak_rss_mb"], "peak_cuda_mb": last.get("peak_cuda_mb"),
+                    "elapsed_s": elapsed,
+                })
+                extra_tensors = {}
+                if device.type == "cuda":
+                    states = torch.cuda.get_rng_state_all()
+                    extra_tensors = {f"cuda_rng_{i}": st for i, st in enumerate(states)}
+                save_checkpoint(
+                    ckpt, model, optimizer, step=step, epoch=epoch + 1, config=configs,
+                    torch_generator=torch.default_generator, numpy_generator=np_rng,
+                    extra={"metrics": last}, extra_tensors=extra_tensors,
+                )
+                mem = f"peak rss {last['peak_rss_mb']:.0f} MB"
+                if "peak_cuda_mb" in last:
+                    mem += f", cuda {last['peak_cuda_mb']:.0f} MB"
+                say(
+                    f"epoch {epoch + 1}/{cfg.total_epochs} [{phase}] step {step} "
+                    f"loss {last['train_loss']:.5f} (recon {last['train_recon']:.5f}, "
+                    f"reg {last['train_reg']:.4f}) "
+                    f"val {val['val_loss']:.5f} mmd {val['val_mmd']:.4f} | "
+                    f"{last['samples_per_s']:.0f} samples/s | {elapsed:.1f} s | {mem}"
+                )
+        finally:
+            log.close()
+    return last
+
+
+def load_trained_bottleneck(
+    run_dir: str | Path, device: str | torch.device = "cpu"
+) -> BottleneckNetwork:
+    """The trained network of ``run_dir`` in eval mode with frozen parameters.
+
+    Its model config is taken from the checkpoint itself. Raises :class:`CheckpointError`
+    when the checkpoint is missing, corrupt, or does not match its own config.
+    """
+    ckpt = Path(run_dir) / CHECKPOINT_NAME
+    saved = _saved_configs(Path(run_dir))
+    if saved is None:
+        raise CheckpointError(f"{ckpt}: no checkpoint in {run_dir}")
+    try:
+        model_cfg = validate(BottleneckConfig, saved["model"])
+    except (KeyError, ValueError) as exc:
+        raise CheckpointError(f"{ckpt}: unusable model config ({exc})") from None
+    model = BottleneckNetwork(model_cfg)
+    load_checkpoint(ckpt, model)
+    model.eval().requires_grad_(False)
+    return model.to(device)

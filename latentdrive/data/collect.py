@@ -1,0 +1,417 @@
+"""Collect denoising datasets for the bottleneck network: (noisy, clean) VelocityMap pairs.
+
+:func:`collect` rolls out episodes of every configured scenario with a behaviour policy
+(:mod:`latentdrive.data.policies`) and records, at every recorded step and for every AV,
+the noisy observation ``(4, T, H, W)`` (the network's input) and the noise-free one (its
+target), quantized to uint8 (error at most 1/510, see :mod:`latentdrive.data.shards`).
+
+The work is cut into units, one per (scenario, block of consecutive episodes), each
+written to its own shard. The unit list and every episode's seeds follow from the
+:class:`CollectConfig` alone, and a shard's content depends only on its unit, so workers
+are independent, the result does not depend on how many there are, and an interrupted
+run resumes by redoing only the units that are not finished. ``manifest.json`` is updated
+by the main process as each shard completes.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import multiprocessing
+import re
+import sys
+import time
+import zlib
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor, as_completed
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from pydantic import Field, ValidationInfo, field_validator
+
+from latentdrive.config import Config, ConfigError, config_hash, merge_overrides
+from latentdrive.data.policies import Behaviour, episode_policy
+from latentdrive.data.shards import (
+    FORMAT,
+    FORMAT_VERSION,
+    MANIFEST,
+    QUANT_MAX_ERROR,
+    DatasetError,
+    array_digest,
+    is_temp_file,
+    quantize,
+    read_manifest,
+    write_manifest,
+    write_shard,
+)
+from latentdrive.env import DrivingEnv, EnvConfig, make_env_config
+from latentdrive.scenarios import SCENARIOS
+
+__all__ = [
+    "CollectConfig",
+    "CollectSummary",
+    "DatasetError",
+    "WorkUnit",
+    "collect",
+    "dataset_hash",
+    "episode_seeds",
+    "plan_units",
+    "resolve_env_configs",
+]
+
+
+class CollectConfig(Config):
+    """What to collect. Everything except ``workers`` defines the dataset's content."""
+
+    scenarios: list[str] = Field(
+        default_factory=lambda: list(SCENARIOS), min_length=1,
+        description="Scenario names (or spec .yaml files); a sample's scenario label is its index in this list.")
+    episodes: int = Field(200, ge=1, le=1_000_000, description="Episodes per scenario.")
+    shard_size: int = Field(
+        512, ge=1, le=1_000_000,
+        description="Target samples per shard. A shard holds whole episodes, as many as fit "
+        "when every episode runs to its time limit (at least one), so shards of scenarios "
+        "where episodes end early hold fewer. Peak memory per worker is about "
+        "shard_size · 2 · 4·T·H·W bytes.")
+    behaviour: Behaviour = Field("mixed", description="Policy driving the AVs: 'random', 'rule' or 'mixed' (per-episode choice).")
+    rule_fraction: float = Field(0.5, ge=0.0, le=1.0, description="Probability that a 'mixed' episode uses the rule-based driver.")
+    seed: int = Field(0, ge=0, description="Root seed; every episode's env and policy seeds derive from it.")
+    workers: int = Field(1, ge=1, le=512, description="Worker processes. Does not change the data, and is not part of the dataset's hash.")
+    sample_every: int = Field(1, ge=1, le=10_000, description="Record every k-th policy step (step 0, the reset observation, is always recorded).")
+    env: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Env overrides applied to every scenario, as for make_env_config: "
+        "'observation' settings, or scenario fields such as 'duration' (seconds) or 'n_av'. "
+        "Dotted keys ('observation.frames') are nested on validation.")
+
+    @field_validator("scenarios")
+    @classmethod
+    def _check_scenarios(cls, v: list[str]) -> list[str]:
+        if len(set(v)) != len(v):
+            raise ValueError(f"duplicate scenario in {v}")
+        for name in v:
+            if name not in SCENARIOS and not name.endswith((".yaml", ".yml")):
+                raise ValueError(f"unknown scenario {name!r}: choose from {', '.join(SCENARIOS)} or a .yaml spec file")
+        return v
+
+    @field_validator("env", mode="before")
+    @classmethod
+    def _nest_env(cls, v: Any) -> Any:
+        # Nesting dotted keys makes {"observation.frames": 2} and {"observation":
+        # {"frames": 2}} the same config, with the same hash.
+        return merge_overrides({}, v) if isinstance(v, dict) else v
+
+    @field_validator("env")
+    @classmethod
+    def _check_env(cls, v: dict[str, Any], info: ValidationInfo) -> dict[str, Any]:
+        for name in info.data.get("scenarios", []):
+            try:
+                make_env_config(name, **v)
+            except ConfigError as exc:
+                raise ValueError(f"scenario {name}: {str(exc).removeprefix('invalid config: ')}") from None
+        return v
+
+
+def dataset_hash(cfg: CollectConfig) -> str:
+    """The dataset's identity: :func:`~latentdrive.config.config_hash` of ``cfg`` with
+    ``workers`` reset to 1, since the number of workers never changes the data."""
+    return config_hash(cfg.model_copy(update={"workers": 1}))
+
+
+def resolve_env_configs(cfg: CollectConfig) -> list[EnvConfig]:
+    """The env config of each scenario, in ``cfg.scenarios`` order, with clean observations on.
+
+    Raises:
+        ConfigError: an override does not apply, or the scenarios' observation shapes differ.
+    """
+    out = [make_env_config(name, **merge_overrides(cfg.env, {"clean_observation": True}))
+           for name in cfg.scenarios]
+    names = [e.scenario.name for e in out]
+    if len(set(names)) != len(names):
+        raise ConfigError(f"scenarios: two specs share a name ({', '.join(names)})")
+    shapes = {e.observation.shape for e in out}
+    if len(shapes) > 1:
+        raise ConfigError(f"env: scenarios have different observation shapes {sorted(shapes)}")
+    return out
+
+
+@dataclass(frozen=True)
+class WorkUnit:
+    """One shard's worth of work: ``episodes`` consecutive episodes of one scenario.
+
+    ``first_episode`` is the global id of the first one; the episode with local index
+    ``e`` (within its scenario) has global id ``scenario · cfg.episodes + e``.
+    """
+
+    name: str
+    scenario: int
+    scenario_name: str
+    first_local: int
+    first_episode: int
+    episodes: int
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "scenario": self.scenario, "first_episode": self.first_episode,
+                "episodes": self.episodes}
+
+
+def _samples_per_episode_max(env_cfg: EnvConfig, sample_every: int) -> int:
+    spec = env_cfg.scenario
+    return spec.n_av * (spec.max_steps // sample_every + 1)
+
+
+def plan_units(cfg: CollectConfig, env_cfgs: list[EnvConfig]) -> list[WorkUnit]:
+    """The work units of ``cfg``, in scenario order then episode order."""
+    units = []
+    for i, env_cfg in enumerate(env_cfgs):
+        per_shard = max(1, cfg.shard_size // _samples_per_episode_max(env_cfg, cfg.sample_every))
+        tag = re.sub(r"[^A-Za-z0-9_.-]", "_", env_cfg.scenario.name)
+        for first in range(0, cfg.episodes, per_shard):
+            units.append(WorkUnit(
+                name=f"{i:02d}-{tag}-{first:06d}.npz", scenario=i, scenario_name=env_cfg.scenario.name,
+                first_local=first, first_episode=i * cfg.episodes + first,
+                episodes=min(per_shard, cfg.episodes - first)))
+    return units
+
+
+def episode_seeds(seed: int, scenario_name: str, local_episode: int) -> tuple[int, np.random.Generator]:
+    """``(env reset seed, policy generator)`` of one episode.
+
+    Both derive from ``SeedSequence(seed, spawn_key=(crc32(scenario_name), local_episode))``,
+    so a scenario's episodes do not change when other scenarios are added or reordered.
+    """
+    ss = np.random.SeedSequence(seed, spawn_key=(zlib.crc32(scenario_name.encode()), local_episode))
+    env_seed = int(ss.generate_state(1, np.uint64)[0] >> np.uint64(1))  # fits int64
+    return env_seed, np.random.default_rng(ss.spawn(1)[0])
+
+
+@dataclass(frozen=True)
+class _Job:
+    cfg: CollectConfig
+    env_cfg: EnvConfig
+    unit: WorkUnit
+    root: Path
+    config_hash: str
+
+
+@dataclass(frozen=True)
+class _UnitResult:
+    name: str
+    samples: int
+    sha256: str
+    bytes: int
+    content_sha256: str
+    episode_samples: list[int]
+    episode_policies: list[str]
+    seconds: float
+
+
+def _rollout_unit(cfg: CollectConfig, env_cfg: EnvConfig, unit: WorkUnit) -> tuple[dict[str, np.ndarray], list[int], list[str]]:
+    """Roll out a unit's episodes; returns the shard's arrays (without the config hash)."""
+    env = DrivingEnv(config=env_cfg)
+    n_av = env_cfg.scenario.n_av
+    noisy: list[np.ndarray] = []
+    clean: list[np.ndarray] = []
+    index: dict[str, list[int]] = {"episode": [], "seed": [], "step": []}
+    counts, policies = [], []
+    for e in range(unit.first_local, unit.first_local + unit.episodes):
+        env_seed, rng = episode_seeds(cfg.seed, unit.scenario_name, e)
+        policy_name, policy = episode_policy(
+            cfg.behaviour, rng, rule_fraction=cfg.rule_fraction,
+            cruise_speeds=env_cfg.scenario.av_target_speeds)
+        obs, info = env.reset(seed=env_seed)
+        step, recorded, done = 0, 0, False
+        while True:
+            if step % cfg.sample_every == 0:
+                # Quantize at once: a shard's float32 observations would take 4× the memory.
+                noisy.append(quantize(obs))
+                clean.append(quantize(info["clean_observation"]))
+                index["episode"].append(unit.scenario * cfg.episodes + e)
+                index["seed"].append(env_seed)
+                index["step"].append(step)
+                recorded += n_av
+            if done:
+                break
+            obs, _, terminated, truncated, info = env.step(policy(info["scene"], rng))
+            step += 1
+            done = terminated or truncated
+        counts.append(recorded)
+        policies.append(policy_name)
+    env.close()
+    shape = env_cfg.observation.shape
+    arrays = {
+        "noisy": np.concatenate(noisy) if noisy else np.zeros((0, *shape), np.uint8),
+        "clean": np.concatenate(clean) if clean else np.zeros((0, *shape), np.uint8),
+        "scenario": np.full(sum(counts), unit.scenario, dtype=np.int64),
+        "agent": np.tile(np.arange(n_av, dtype=np.int64), len(index["step"])),
+    }
+    for key, values in index.items():
+        arrays[key] = np.repeat(np.asarray(values, dtype=np.int64), n_av)
+    return arrays, counts, policies
+
+
+def _run_unit(job: _Job) -> _UnitResult:
+    """Collect one unit and write its shard (runs in a worker process or in-process)."""
+    t0 = time.perf_counter()
+    arrays, counts, policies = _rollout_unit(job.cfg, job.env_cfg, job.unit)
+    arrays["config_hash"] = np.array(job.config_hash)
+    digest = array_digest(arrays)
+    sha, size = write_shard(job.root / job.unit.name, arrays)
+    return _UnitResult(job.unit.name, int(arrays["noisy"].shape[0]), sha, size, digest, counts,
+                       policies, time.perf_counter() - t0)
+
+
+@dataclass(frozen=True)
+class CollectSummary:
+    """What :func:`collect` did."""
+
+    root: Path
+    shards_total: int
+    shards_written: int
+    shards_skipped: int
+    samples_written: int
+    samples_total: int
+    seconds: float
+
+    @property
+    def samples_per_s(self) -> float:
+        """Samples written per wall-clock second of this run."""
+        return self.samples_written / self.seconds if self.seconds > 0 else 0.0
+
+
+def _new_manifest(cfg: CollectConfig, chash: str, env_cfgs: list[EnvConfig], units: list[WorkUnit]) -> dict[str, Any]:
+    return {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "config_hash": chash,
+        "config": cfg.model_dump(mode="json"),
+        "scenarios": [e.scenario.name for e in env_cfgs],
+        "env_configs": [e.model_dump(mode="json") for e in env_cfgs],
+        "sample_shape": list(env_cfgs[0].observation.shape),
+        "quantization": {"dtype": "uint8", "value": "round(255*x)", "max_abs_error": QUANT_MAX_ERROR},
+        "units": [u.as_dict() for u in units],
+        "shards": {},
+    }
+
+
+def _file_sha256(path: Path) -> str | None:
+    """sha256 of a file's bytes, or None when it cannot be read."""
+    h = hashlib.sha256()
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(1 << 20), b""):
+                h.update(block)
+    except OSError:
+        return None
+    return h.hexdigest()
+
+
+def _open_dataset_dir(root: Path, fresh: dict[str, Any], say: Callable[[str], None]) -> dict[str, Any]:
+    """The manifest to continue from: a new one, or the existing one with unverifiable shards dropped."""
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"{root}: exists and is not a directory")
+    if not (root / MANIFEST).exists():
+        if root.exists() and any(not is_temp_file(p) for p in root.iterdir()):
+            raise DatasetError(f"{root}: directory is not empty and holds no {MANIFEST}; collect into an empty or new directory")
+        root.mkdir(parents=True, exist_ok=True)
+        manifest = fresh
+    else:
+        manifest = read_manifest(root)
+        if manifest["config_hash"] != fresh["config_hash"]:
+            raise DatasetError(
+                f"{root}: holds a dataset of config {manifest['config_hash']}, not this config's "
+                f"{fresh['config_hash']}; rerun with the same settings to resume, or use another directory")
+        for key in ("scenarios", "env_configs", "sample_shape", "units"):
+            if manifest[key] != fresh[key]:
+                raise DatasetError(
+                    f"{root}: the same config now resolves to different {key} than when the "
+                    "dataset was collected (scenario presets changed?); use another directory")
+        kept = {}
+        for name, entry in manifest["shards"].items():
+            if _file_sha256(root / name) == entry["sha256"]:
+                kept[name] = entry
+            else:
+                say(f"{root / name}: missing or changed since it was recorded; collecting it again")
+        manifest["shards"] = kept
+    for p in root.iterdir():
+        if is_temp_file(p):  # left by an interrupted write; its shard is redone
+            p.unlink()
+    write_manifest(root, manifest)
+    return manifest
+
+
+def collect(cfg: CollectConfig, out_dir: str | Path, progress: bool = True) -> CollectSummary:
+    """Collect the dataset of ``cfg`` into ``out_dir``, resuming what is already there.
+
+    Shards recorded in the manifest whose file is present with the recorded sha256 are
+    kept; every other unit is (re)collected, so rerunning after an interruption never
+    duplicates samples and ends with the same content as an uninterrupted run. With
+    ``cfg.workers > 1`` units run in spawned worker processes, each building its own envs;
+    a script calling it so must guard its entry point with ``if __name__ == "__main__":``.
+
+    Raises:
+        DatasetError: ``out_dir`` holds another config's dataset (the message names both
+            hashes), is a non-empty directory without a manifest, or has a corrupt manifest.
+        ConfigError: the env overrides do not apply to a scenario.
+    """
+    root = Path(out_dir)
+
+    def say(msg: str) -> None:
+        if progress:
+            print(msg, file=sys.stderr, flush=True)
+
+    env_cfgs = resolve_env_configs(cfg)
+    units = plan_units(cfg, env_cfgs)
+    chash = dataset_hash(cfg)
+    manifest = _open_dataset_dir(root, _new_manifest(cfg, chash, env_cfgs, units), say)
+    todo = [u for u in units if u.name not in manifest["shards"]]
+    skipped = len(units) - len(todo)
+    if skipped:
+        say(f"{root}: {skipped} of {len(units)} shards already collected")
+    jobs = [_Job(cfg, env_cfgs[u.scenario], u, root, chash) for u in todo]
+    t0 = time.perf_counter()
+    written = 0
+    for k, res in enumerate(_execute(jobs, cfg.workers), start=1):
+        manifest["shards"][res.name] = {
+            "samples": res.samples, "sha256": res.sha256, "bytes": res.bytes,
+            "content_sha256": res.content_sha256, "episode_samples": res.episode_samples,
+            "episode_policies": res.episode_policies,
+        }
+        write_manifest(root, manifest)
+        written += res.samples
+        wall = time.perf_counter() - t0
+        say(f"[{skipped + k}/{len(units)}] {res.name}: {res.samples} samples, {res.bytes / 2**20:.1f} MiB, "
+            f"{res.samples / max(res.seconds, 1e-9):.0f} samples/s in its worker, "
+            f"{written / max(wall, 1e-9):.0f} samples/s overall")
+    total = sum(int(e["samples"]) for e in manifest["shards"].values())
+    summary = CollectSummary(root, len(units), len(todo), skipped, written, total, time.perf_counter() - t0)
+    say(f"{root}: {total} samples in {len(units)} shards ({written} new in {summary.seconds:.1f} s)")
+    return summary
+
+
+def _execute(jobs: list[_Job], workers: int) -> Iterator[_UnitResult]:
+    """Results of ``jobs`` as they complete (in-process for one worker)."""
+    if workers <= 1 or len(jobs) <= 1:
+        for job in jobs:
+            yield _run_unit(job)
+        return
+    # Spawned workers start from a fresh interpreter: no simulator state (highway-env
+    # writes some driver parameters on classes) is inherited from the parent. An executor
+    # rather than multiprocessing.Pool: when a worker dies (killed, out of memory, or a
+    # script without a __main__ guard) it fails instead of respawning workers forever.
+    ex = ProcessPoolExecutor(max_workers=min(workers, len(jobs)),
+                             mp_context=multiprocessing.get_context("spawn"))
+    try:
+        futures = [ex.submit(_run_unit, job) for job in jobs]
+        for fut in as_completed(futures):
+            yield fut.result()
+    except BrokenProcessPool:
+        raise DatasetError(
+            f"{jobs[0].root}: a collection worker process died (out of memory, killed, or "
+            "collect() called with workers > 1 from a script without an "
+            "`if __name__ == '__main__':` guard); finished shards are kept, rerun to resume"
+        ) from None
+    finally:
+        ex.shutdown(wait=True, cancel_futures=True)

@@ -1,0 +1,250 @@
+"""On-disk format of observation datasets: quantization, shard files and the manifest.
+
+A dataset directory holds ``manifest.json`` and one compressed ``.npz`` shard per work
+unit (one scenario, one block of consecutive episodes). Shards are written with
+``numpy.savez_compressed`` and read with ``numpy.load(..., allow_pickle=False)``: nothing
+in a dataset is ever unpickled. Every write goes to a temporary file in the same
+directory and is renamed into place, so a reader sees either the old file or the new one.
+
+Shard arrays (``n`` samples, one per AV per recorded step):
+
+====================  ===========================  =======================================
+``noisy``             ``(n, 4, T, H, W)`` uint8    observation with sensor noise, quantized
+``clean``             ``(n, 4, T, H, W)`` uint8    the same observation without noise
+``scenario``          ``(n,)`` int64               index into the manifest's ``scenarios``
+``episode``           ``(n,)`` int64               global episode id, unique in the dataset
+``seed``              ``(n,)`` int64               the seed the episode's env was reset with
+``step``              ``(n,)`` int64               policy step in the episode (0 = reset)
+``agent``             ``(n,)`` int64               which AV of the scene observed it
+``config_hash``       ``()`` unicode               hash of the config that wrote the shard
+====================  ===========================  =======================================
+
+Quantization: a value ``x`` in [0, 1] is stored as ``q = round(255·x)`` and read back as
+``q / 255``, so every reconstructed value is within ``1/510`` (half a step) of the
+original.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import json
+import os
+import zipfile
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from latentdrive.config import LatentDriveError
+
+__all__ = [
+    "FORMAT",
+    "FORMAT_VERSION",
+    "IMAGE_KEYS",
+    "INDEX_KEYS",
+    "MANIFEST",
+    "QUANT_MAX_ERROR",
+    "SHARD_KEYS",
+    "DatasetError",
+    "array_digest",
+    "atomic_write_bytes",
+    "dequantize",
+    "quantize",
+    "read_manifest",
+    "read_shard",
+    "write_manifest",
+    "write_shard",
+]
+
+FORMAT = "latentdrive-observation-dataset"
+FORMAT_VERSION = 1
+MANIFEST = "manifest.json"
+#: Largest absolute error of :func:`dequantize` ∘ :func:`quantize` on [0, 1]: half of 1/255.
+QUANT_MAX_ERROR = 1.0 / 510.0
+IMAGE_KEYS: tuple[str, ...] = ("noisy", "clean")
+INDEX_KEYS: tuple[str, ...] = ("scenario", "episode", "seed", "step", "agent")
+SHARD_KEYS: frozenset[str] = frozenset((*IMAGE_KEYS, *INDEX_KEYS, "config_hash"))
+TMP_SUFFIX = ".tmp"
+
+
+class DatasetError(LatentDriveError):
+    """A dataset directory, manifest or shard is missing, corrupt or from another config.
+
+    The one-line message names the file or directory.
+    """
+
+
+def quantize(x: NDArray[np.floating]) -> NDArray[np.uint8]:
+    """``round(255·x)`` as uint8; ``x`` in [0, 1] (values outside are clipped first)."""
+    return np.rint(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
+
+
+def dequantize(q: NDArray[np.uint8]) -> NDArray[np.float32]:
+    """``q / 255`` as float32 in [0, 1]; within :data:`QUANT_MAX_ERROR` of the original."""
+    return q.astype(np.float32) / np.float32(255.0)
+
+
+def array_digest(arrays: Mapping[str, np.ndarray]) -> str:
+    """sha256 of the arrays' names, dtypes, shapes and bytes (independent of the zip container).
+
+    Two shards with equal digests hold identical data even when their files differ
+    (``savez_compressed`` stamps each member with the time it was written).
+    """
+    h = hashlib.sha256()
+    for key in sorted(arrays):
+        a = np.ascontiguousarray(arrays[key])
+        h.update(f"{key}|{a.dtype.str}|{a.shape}|".encode())
+        h.update(a.tobytes())
+    return h.hexdigest()
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same directory and a rename."""
+    tmp = path.with_name(f".{path.name}.{os.getpid()}{TMP_SUFFIX}")
+    try:
+        with open(tmp, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    finally:
+        if tmp.exists():
+            tmp.unlink()
+
+
+def is_temp_file(path: Path) -> bool:
+    """Whether ``path`` is a temporary file left by :func:`atomic_write_bytes`."""
+    return path.name.startswith(".") and path.name.endswith(TMP_SUFFIX)
+
+
+def write_shard(path: Path, arrays: Mapping[str, np.ndarray]) -> tuple[str, int]:
+    """Atomically write a shard; returns ``(sha256 of the file, its size in bytes)``."""
+    missing = SHARD_KEYS - set(arrays)
+    if missing:
+        raise ValueError(f"shard arrays lack {sorted(missing)}")
+    buf = io.BytesIO()
+    members: dict[str, Any] = {k: np.asarray(arrays[k]) for k in sorted(SHARD_KEYS)}
+    np.savez_compressed(buf, **members)
+    data = buf.getvalue()
+    atomic_write_bytes(path, data)
+    return hashlib.sha256(data).hexdigest(), len(data)
+
+
+def read_shard(
+    path: Path,
+    *,
+    sha256: str | None,
+    config_hash: str,
+    sample_shape: tuple[int, ...],
+    samples: int | None = None,
+) -> dict[str, np.ndarray]:
+    """Load and check one shard; every failure is a :class:`DatasetError` naming ``path``.
+
+    Checks, in order: the file's sha256 (when given), that it is a zip of ``.npy`` members
+    (never unpickled), the exact set of arrays, their dtypes and shapes (images
+    ``(n, *sample_shape)``, ``n`` equal to ``samples`` when given) and the config hash
+    stored inside.
+    """
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: shard is missing") from None
+    except OSError as exc:
+        raise DatasetError(f"{path}: cannot read shard ({exc.strerror})") from None
+    if sha256 is not None and hashlib.sha256(data).hexdigest() != sha256:
+        raise DatasetError(f"{path}: shard is corrupt (sha256 differs from the manifest)")
+    try:
+        with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+            keys = set(npz.files)
+            if keys != SHARD_KEYS:
+                raise DatasetError(
+                    f"{path}: not a shard of this format (arrays {sorted(keys)}, "
+                    f"expected {sorted(SHARD_KEYS)})"
+                )
+            arrays = {k: npz[k] for k in SHARD_KEYS}
+    except DatasetError:
+        raise
+    except (zipfile.BadZipFile, ValueError, OSError, EOFError, KeyError) as exc:
+        reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+        raise DatasetError(f"{path}: shard is corrupt ({reason})") from None
+    n = arrays["noisy"].shape[0] if arrays["noisy"].ndim else -1
+    for key in IMAGE_KEYS:
+        a = arrays[key]
+        if a.dtype != np.uint8 or a.shape != (n, *sample_shape):
+            raise DatasetError(
+                f"{path}: array {key!r} is {a.dtype}{list(a.shape)}, expected "
+                f"uint8{[n, *sample_shape]}"
+            )
+    for key in INDEX_KEYS:
+        a = arrays[key]
+        if a.dtype != np.int64 or a.shape != (n,):
+            raise DatasetError(f"{path}: array {key!r} is {a.dtype}{list(a.shape)}, expected int64[{n}]")
+    if samples is not None and n != samples:
+        raise DatasetError(f"{path}: holds {n} samples, the manifest says {samples}")
+    stored = arrays["config_hash"]
+    if stored.dtype.kind != "U" or stored.shape != () or str(stored) != config_hash:
+        raise DatasetError(
+            f"{path}: shard belongs to config {str(stored)!r}, not this dataset's {config_hash}"
+        )
+    return arrays
+
+
+def write_manifest(root: Path, manifest: Mapping[str, Any]) -> None:
+    """Atomically (re)write ``root/manifest.json``."""
+    atomic_write_bytes(root / MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode())
+
+
+_MANIFEST_KEYS = ("format", "version", "config_hash", "config", "scenarios", "env_configs",
+                  "sample_shape", "units", "shards")
+
+
+def read_manifest(root: Path) -> dict[str, Any]:
+    """Read and structurally check ``root/manifest.json``; :class:`DatasetError` naming it otherwise."""
+    path = root / MANIFEST
+    try:
+        manifest = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: no dataset manifest (collect one with `latentdrive collect`)") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise DatasetError(f"{path}: manifest is corrupt ({str(exc).splitlines()[0]})") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
+        raise DatasetError(f"{path}: not a latentdrive dataset manifest")
+    if manifest.get("version") != FORMAT_VERSION:
+        raise DatasetError(
+            f"{path}: dataset format version {manifest.get('version')!r}, this latentdrive "
+            f"reads version {FORMAT_VERSION}"
+        )
+    missing = [k for k in _MANIFEST_KEYS if k not in manifest]
+    if missing:
+        raise DatasetError(f"{path}: manifest is corrupt (missing {', '.join(missing)})")
+    try:
+        _check_manifest_types(manifest)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise DatasetError(f"{path}: manifest is corrupt ({exc})") from None
+    return manifest
+
+
+def _check_manifest_types(m: dict[str, Any]) -> None:
+    if not (isinstance(m["scenarios"], list) and all(isinstance(s, str) for s in m["scenarios"])):
+        raise TypeError("scenarios must be a list of names")
+    if not (isinstance(m["sample_shape"], list) and len(m["sample_shape"]) == 4
+            and all(isinstance(v, int) and v > 0 for v in m["sample_shape"])):
+        raise TypeError("sample_shape must be 4 positive integers")
+    if not isinstance(m["units"], list) or not isinstance(m["shards"], dict):
+        raise TypeError("units must be a list and shards a mapping")
+    names = set()
+    for u in m["units"]:
+        names.add(str(u["name"]))
+        if not 0 <= int(u["scenario"]) < len(m["scenarios"]):
+            raise ValueError(f"unit {u['name']} has scenario index {u['scenario']} out of range")
+    for name, entry in m["shards"].items():
+        if name not in names:
+            raise ValueError(f"shard {name} is not one of the planned units")
+        for key in ("samples", "sha256", "bytes", "episode_samples", "content_sha256"):
+            if key not in entry:
+                raise KeyError(f"shard {name} lacks {key!r}")
+        if sum(int(c) for c in entry["episode_samples"]) != int(entry["samples"]):
+            raise ValueError(f"shard {name}: episode sample counts do not add up")

@@ -1,0 +1,200 @@
+"""Checkpoints: exact round trips, atomic writes, and one-line errors for unusable files."""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from latentdrive.bnn import checkpoint as ckpt_mod
+from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
+
+CFG = BottleneckConfig(input_shape=(2, 8, 16), latent_dim=8, channels=(4, 8))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread() -> Iterator[None]:
+    # Tiny workloads: one thread is as fast, and spares a busy machine the
+    # oversubscription that can slow multi-threaded kernels several-fold.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _trained(cfg: BottleneckConfig = CFG, steps: int = 3, seed: int = 0):
+    torch.manual_seed(seed)
+    model = BottleneckNetwork(cfg)
+    opt = torch.optim.AdamW(model.parameters(), lr=1e-2, weight_decay=0.01)
+    g = torch.Generator().manual_seed(seed)
+    for _ in range(steps):
+        x = torch.rand(4, 4, *cfg.input_shape, generator=g)
+        loss = ((model(x)[0] - model.pairs(x)) ** 2).mean()
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    return model, opt
+
+
+def _one_more_step(model: BottleneckNetwork, opt: torch.optim.Optimizer) -> None:
+    x = torch.full((2, 4, *model.cfg.input_shape), 0.3)
+    loss = ((model(x)[0] - model.pairs(x)) ** 2).mean()
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+
+
+def _assert_one_line_naming(exc: pytest.ExceptionInfo[CheckpointError], path: Path) -> None:
+    msg = str(exc.value)
+    assert msg.startswith(str(path)), msg
+    assert "\n" not in msg
+    assert isinstance(exc.value, ValueError)
+
+
+def test_round_trip_restores_everything(tmp_path: Path) -> None:
+    model, opt = _trained()
+    tgen = torch.Generator().manual_seed(123)
+    tgen.manual_seed(5)
+    torch.rand(3, generator=tgen)
+    ngen = np.random.default_rng(99)
+    ngen.random(7)
+    path = save_checkpoint(
+        tmp_path / "c.safetensors", model, opt, step=3, epoch=1,
+        config={"model": CFG.model_dump(mode="json")},
+        torch_generator=tgen, numpy_generator=ngen,
+        extra={"metrics": {"loss": 0.5}}, extra_tensors={"ema": torch.ones(2)},
+    )
+    torch.manual_seed(1)
+    model2 = BottleneckNetwork(CFG)
+    opt2 = torch.optim.AdamW(model2.parameters(), lr=1.0)
+    tgen2, ngen2 = torch.Generator(), np.random.default_rng(0)
+    info = load_checkpoint(path, model2, opt2, torch_generator=tgen2, numpy_generator=ngen2)
+
+    assert (info.step, info.epoch) == (3, 1)
+    assert info.config == {"model": CFG.model_dump(mode="json")}
+    assert info.extra == {"metrics": {"loss": 0.5}}
+    assert torch.equal(info.extra_tensors["ema"], torch.ones(2))
+    sd1, sd2 = model.state_dict(), model2.state_dict()
+    assert sd1.keys() == sd2.keys()
+    assert all(torch.equal(sd1[k], sd2[k]) for k in sd1)
+    assert opt2.param_groups[0]["lr"] == 1e-2
+    assert torch.equal(torch.rand(5, generator=tgen), torch.rand(5, generator=tgen2))
+    assert np.array_equal(ngen.random(5), ngen2.random(5))
+    # Continuing from the copy gives bitwise the same parameters as continuing the original.
+    _one_more_step(model, opt)
+    _one_more_step(model2, opt2)
+    for t1, t2 in zip(model.parameters(), model2.parameters(), strict=True):
+        assert torch.equal(t1, t2)
+
+
+def test_numpy_generators_with_array_state(tmp_path: Path) -> None:
+    model, _ = _trained(steps=0)
+    gen = np.random.Generator(np.random.MT19937(3))
+    gen.random(10)
+    path = save_checkpoint(tmp_path / "c.safetensors", model, step=0, epoch=0, numpy_generator=gen)
+    gen2 = np.random.Generator(np.random.MT19937(0))
+    load_checkpoint(path, model, numpy_generator=gen2)
+    assert np.array_equal(gen.integers(0, 1 << 30, 20), gen2.integers(0, 1 << 30, 20))
+
+
+def test_other_architecture_is_rejected_and_nothing_changes(tmp_path: Path) -> None:
+    model, opt = _trained()
+    path = save_checkpoint(tmp_path / "c.safetensors", model, opt, step=3, epoch=1)
+    other = BottleneckNetwork(CFG.replace(latent_dim=16))
+    before = {k: v.clone() for k, v in other.state_dict().items()}
+    with pytest.raises(CheckpointError, match="architecture differs") as exc:
+        load_checkpoint(path, other)
+    _assert_one_line_naming(exc, path)
+    assert all(torch.equal(before[k], v) for k, v in other.state_dict().items())
+
+    deeper = BottleneckNetwork(CFG.replace(channels=(4, 8, 8)))
+    with pytest.raises(CheckpointError, match="architecture differs") as exc:
+        load_checkpoint(path, deeper)
+    _assert_one_line_naming(exc, path)
+
+    # Same model, another optimizer: refused before the model is touched.
+    fresh = BottleneckNetwork(CFG)
+    before = {k: v.clone() for k, v in fresh.state_dict().items()}
+    with pytest.raises(CheckpointError, match="SGD") as exc:
+        load_checkpoint(path, fresh, torch.optim.SGD(fresh.parameters(), lr=0.1))
+    _assert_one_line_naming(exc, path)
+    assert all(torch.equal(before[k], v) for k, v in fresh.state_dict().items())
+
+
+@pytest.mark.parametrize("damage", ["truncate", "flip_data", "garbage", "empty", "header_json"])
+def test_corrupt_files_are_rejected(tmp_path: Path, damage: str) -> None:
+    model, opt = _trained()
+    path = save_checkpoint(tmp_path / "c.safetensors", model, opt, step=3, epoch=1)
+    data = bytearray(path.read_bytes())
+    if damage == "truncate":
+        data = data[: len(data) // 2]
+    elif damage == "flip_data":
+        data[-10] ^= 0xFF
+    elif damage == "garbage":
+        data = bytearray(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    elif damage == "empty":
+        data = bytearray()
+    elif damage == "header_json":
+        data[9] = ord("!")
+    path.write_bytes(bytes(data))
+    with pytest.raises(CheckpointError) as exc:
+        load_checkpoint(path, BottleneckNetwork(CFG))
+    _assert_one_line_naming(exc, path)
+
+
+def test_foreign_and_missing_files_are_rejected(tmp_path: Path) -> None:
+    foreign = tmp_path / "foreign.safetensors"
+    save_file({"w": torch.zeros(3)}, str(foreign))
+    with pytest.raises(CheckpointError, match="not a latentdrive checkpoint") as exc:
+        load_checkpoint(foreign, BottleneckNetwork(CFG))
+    _assert_one_line_naming(exc, foreign)
+    missing = tmp_path / "missing.safetensors"
+    with pytest.raises(CheckpointError, match="cannot read") as exc:
+        load_checkpoint(missing, BottleneckNetwork(CFG))
+    _assert_one_line_naming(exc, missing)
+
+
+def test_missing_optimizer_or_rng_state_is_an_error(tmp_path: Path) -> None:
+    model, _ = _trained(steps=0)
+    path = save_checkpoint(tmp_path / "c.safetensors", model, step=0, epoch=0)
+    with pytest.raises(CheckpointError, match="no optimizer state"):
+        load_checkpoint(path, model, torch.optim.AdamW(model.parameters()))
+    with pytest.raises(CheckpointError, match="no torch generator state"):
+        load_checkpoint(path, model, torch_generator=torch.Generator())
+
+
+def test_writes_are_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    model, opt = _trained()
+    path = save_checkpoint(tmp_path / "c.safetensors", model, opt, step=3, epoch=1)
+    original = path.read_bytes()
+    assert os.listdir(tmp_path) == ["c.safetensors"]
+
+    def broken_replace(src: str, dst: str) -> None:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(ckpt_mod.os, "replace", broken_replace)
+    _one_more_step(model, opt)
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint(path, model, opt, step=4, epoch=2)
+    # The old checkpoint is intact and no temporary file is left behind.
+    assert path.read_bytes() == original
+    assert os.listdir(tmp_path) == ["c.safetensors"]
+
+
+def test_loading_never_unpickles(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    model, opt = _trained()
+    path = save_checkpoint(tmp_path / "c.safetensors", model, opt, step=3, epoch=1)
+
+    def forbidden(*args: object, **kwargs: object) -> None:
+        raise AssertionError("torch.load must not be used")
+
+    monkeypatch.setattr(torch, "load", forbidden)
+    monkeypatch.setattr("pickle.loads", forbidden)
+    fresh = BottleneckNetwork(CFG)
+    load_checkpoint(path, fresh, torch.optim.AdamW(fresh.parameters()))

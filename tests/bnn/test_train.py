@@ -1,0 +1,284 @@
+"""Bottleneck-network training on small synthetic VelocityMaps (4 × T=2 × 16 × 32)."""
+
+from __future__ import annotations
+
+import csv
+import json
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from latentdrive.bnn import train as train_mod
+from latentdrive.bnn.batch import BNNBatch, array_batches_fn, iterate_batches, synthetic_dataset
+from latentdrive.bnn.checkpoint import CheckpointError, read_checkpoint
+from latentdrive.bnn.train import (
+    BNNTrainConfig,
+    load_trained_bottleneck,
+    reconstruction_loss,
+    step_losses,
+    train_bnn,
+)
+from latentdrive.config import ConfigError, validate
+from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
+
+SHAPE = (4, 2, 16, 32)
+MODEL = BottleneckConfig(input_shape=SHAPE[1:], latent_dim=16, channels=(8, 16, 16))
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread() -> Iterator[None]:
+    # Tiny workloads: one thread is as fast, and spares a busy machine the
+    # oversubscription that can slow multi-threaded kernels several-fold.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+@pytest.fixture(scope="module")
+def data() -> dict[str, np.ndarray]:
+    clean, noisy, scenario = synthetic_dataset(320, SHAPE, 3, seed=0)
+    vclean, vnoisy, vscenario = synthetic_dataset(96, SHAPE, 3, seed=1)
+    return {
+        "clean": clean, "noisy": noisy, "scenario": scenario,
+        "vclean": vclean, "vnoisy": vnoisy, "vscenario": vscenario,
+    }
+
+
+def _fns(data: dict[str, np.ndarray], n: int, batch_size: int, stratify_from: int):
+    train_fn = array_batches_fn(
+        data["clean"][:n], data["noisy"][:n], data["scenario"][:n],
+        batch_size=batch_size, seed=0, stratify_from_epoch=stratify_from,
+    )
+
+    def val_fn() -> Iterator[BNNBatch]:
+        return iterate_batches(
+            data["vclean"], data["vnoisy"], data["vscenario"], 48, np.random.default_rng(0)
+        )
+
+    return train_fn, val_fn
+
+
+def _small_cfg(**fields: object) -> BNNTrainConfig:
+    base = {"pretrain_epochs": 1, "mixed_epochs": 2, "batch_size": 16, "lr": 3e-3,
+            "lambda_distance": 0.01, "log_every": 2, "val_mmd_samples": 8, "num_threads": 1}
+    return BNNTrainConfig.model_validate({**base, **fields})
+
+
+def _rows(run: Path) -> list[dict[str, str]]:
+    with (run / "metrics.csv").open(newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def _losses(run: Path) -> list[tuple[str, ...]]:
+    # Everything but timings and memory, which legitimately vary between runs.
+    keys = ("kind", "step", "loss", "recon", "reg", "val_loss")
+    return [tuple(r[k] for k in keys) for r in _rows(run)]
+
+
+def _model_tensors(run: Path) -> dict[str, torch.Tensor]:
+    tensors, _ = read_checkpoint(run / "checkpoint.safetensors")
+    return {k: v for k, v in tensors.items() if not k.startswith("rng/")}
+
+
+# ---------------------------------------------------------------------------------------
+# The loss
+
+
+def test_loss_targets_the_clean_pairs(data: dict[str, np.ndarray]) -> None:
+    torch.manual_seed(0)
+    model = BottleneckNetwork(MODEL)
+    noisy = torch.from_numpy(data["noisy"][:8])
+    clean = torch.from_numpy(data["clean"][:8])
+    batch = BNNBatch(noisy, clean, torch.from_numpy(data["scenario"][:8]))
+    with torch.no_grad():
+        recon, _ = model(noisy)
+        expected = torch.mean((recon - channel_pairs(clean)) ** 2)
+        against_noisy = torch.mean((recon - channel_pairs(noisy)) ** 2)
+        loss = reconstruction_loss(model, batch)
+        total, recon_part, reg = step_losses(model, batch, 0.0)
+    assert torch.equal(loss, expected)
+    assert not torch.allclose(loss, against_noisy)
+    assert torch.equal(total, expected) and torch.equal(recon_part, expected) and float(reg) == 0.0
+    # With λ > 0 the total adds λ times the scenario distance of the latents.
+    with torch.no_grad():
+        total, recon_part, reg = step_losses(model, batch, 0.5)
+    assert float(reg) > 0.0
+    torch.testing.assert_close(total, recon_part + 0.5 * reg)
+
+
+def test_train_step_uses_step_losses(
+    data: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    seen: list[tuple[torch.Tensor, float]] = []
+
+    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0):
+        seen.append((batch.clean, lam))
+        return step_losses(model, batch, lam)
+
+    monkeypatch.setattr(train_mod, "step_losses", spy)
+    train_fn, _ = _fns(data, 32, 16, stratify_from=1)
+    train_bnn(_small_cfg(), MODEL, train_fn, None, tmp_path / "run", progress=False)
+    # Two batches per epoch; λ only in the mixed phase; the target is the clean batch.
+    assert [lam for _, lam in seen] == [0.0, 0.0, 0.01, 0.01, 0.01, 0.01]
+    first = next(iter(train_fn(0)))
+    assert torch.equal(seen[0][0], first.clean)
+
+
+# ---------------------------------------------------------------------------------------
+# Training runs
+
+
+def test_tiny_run_learns_to_reconstruct(data: dict[str, np.ndarray], tmp_path: Path) -> None:
+    cfg = _small_cfg(pretrain_epochs=6, mixed_epochs=4, batch_size=32, lambda_distance=0.0,
+                     log_every=5, val_mmd_samples=32)
+    train_fn, val_fn = _fns(data, 320, 32, stratify_from=6)
+    # The best constant guess, the mean training map, scores about 0.034.
+    mean_map = channel_pairs(torch.from_numpy(data["clean"])).mean(0, keepdim=True)
+    baseline = float(torch.mean((channel_pairs(torch.from_numpy(data["vclean"])) - mean_map) ** 2))
+    run = tmp_path / "run"
+    metrics = train_bnn(cfg, MODEL, train_fn, val_fn, run, progress=False)
+
+    assert metrics["epoch"] == 10 and metrics["step"] == 100
+    assert metrics["val_loss"] < 0.012 < baseline / 2.5
+    epochs = [r for r in _rows(run) if r["kind"] == "epoch"]
+    assert len(epochs) == 10
+    assert [r["phase"] for r in epochs] == ["pretrain"] * 6 + ["mixed"] * 4
+    assert float(epochs[0]["val_loss"]) > 2 * float(epochs[-1]["val_loss"])
+    assert metrics["samples_per_s"] > 0 and metrics["peak_rss_mb"] > 0
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["model"] == MODEL.model_dump(mode="json")
+    assert saved["train"] == cfg.model_dump(mode="json")
+    assert any((run / "tb").iterdir())
+    # The trained encoder loads back frozen, for the Q-network.
+    net = load_trained_bottleneck(run)
+    assert not net.training and not any(p.requires_grad for p in net.parameters())
+    z = net.encode(torch.from_numpy(data["vnoisy"][:4]))
+    assert z.shape == (4, 3, 16)
+
+
+def test_same_seed_same_run(data: dict[str, np.ndarray], tmp_path: Path) -> None:
+    train_fn, val_fn = _fns(data, 64, 16, stratify_from=1)
+    train_bnn(_small_cfg(), MODEL, train_fn, val_fn, tmp_path / "a", progress=False)
+    train_bnn(_small_cfg(), MODEL, train_fn, val_fn, tmp_path / "b", progress=False)
+    train_bnn(_small_cfg(seed=1), MODEL, train_fn, val_fn, tmp_path / "c", progress=False)
+    assert _losses(tmp_path / "a") == _losses(tmp_path / "b")
+    a, b, c = (_model_tensors(tmp_path / x) for x in "abc")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert _losses(tmp_path / "a") != _losses(tmp_path / "c")
+    assert not all(torch.equal(a[k], c[k]) for k in a)
+
+
+class _Interrupted(Exception):
+    pass
+
+
+def test_resume_continues_to_the_same_result(data: dict[str, np.ndarray], tmp_path: Path) -> None:
+    train_fn, val_fn = _fns(data, 64, 16, stratify_from=1)
+    cfg = _small_cfg()
+    full = train_bnn(cfg, MODEL, train_fn, val_fn, tmp_path / "full", progress=False)
+
+    def interrupted_fn(epoch: int) -> Iterator[BNNBatch]:
+        for i, batch in enumerate(train_fn(epoch)):
+            if epoch == 2 and i == 2:
+                raise _Interrupted  # mid-epoch, after the epoch-2 checkpoint's steps moved on
+            yield batch
+
+    run = tmp_path / "resumed"
+    with pytest.raises(_Interrupted):
+        train_bnn(cfg, MODEL, interrupted_fn, val_fn, run, progress=False)
+    _, state = read_checkpoint(run / "checkpoint.safetensors")
+    assert (state["epoch"], state["step"]) == (2, 8)
+    # Rows logged after the checkpoint (steps 9, 10) exist until the resume drops them.
+    assert max(int(r["step"]) for r in _rows(run)) == 10
+
+    resumed = train_bnn(cfg, MODEL, train_fn, val_fn, run, resume=True, progress=False)
+    for key in ("epoch", "step", "train_loss", "train_recon", "train_reg", "val_loss", "val_mmd"):
+        assert resumed[key] == full[key], key
+    full_t, res_t = _model_tensors(tmp_path / "full"), _model_tensors(run)
+    assert full_t.keys() == res_t.keys()
+    assert all(torch.equal(full_t[k], res_t[k]) for k in full_t)
+    assert _losses(run) == _losses(tmp_path / "full")
+
+    # Resuming a finished run does no more work; extending the schedule continues it.
+    again = train_bnn(cfg, MODEL, train_fn, val_fn, run, resume=True, progress=False)
+    assert again["step"] == full["step"]
+    longer = train_bnn(cfg.replace(mixed_epochs=3), MODEL, train_fn, val_fn, run,
+                       resume=True, progress=False)
+    assert longer["epoch"] == 4 and longer["step"] == full["step"] + 4
+
+
+def test_run_dir_guards(data: dict[str, np.ndarray], tmp_path: Path) -> None:
+    train_fn, _ = _fns(data, 32, 16, stratify_from=1)
+    run = tmp_path / "run"
+    cfg = _small_cfg(mixed_epochs=0)
+    train_bnn(cfg, MODEL, train_fn, None, run, progress=False)
+    with pytest.raises(FileExistsError, match="resume=True"):
+        train_bnn(cfg, MODEL, train_fn, None, run, progress=False)
+    with pytest.raises(CheckpointError, match="model config") as exc:
+        train_bnn(cfg, MODEL.replace(latent_dim=32), train_fn, None, run, resume=True,
+                  progress=False)
+    assert str(exc.value).startswith(str(run / "checkpoint.safetensors"))
+    with pytest.raises(CheckpointError, match=r"\(lr\)"):
+        train_bnn(cfg.replace(lr=1e-4), MODEL, train_fn, None, run, resume=True, progress=False)
+    with pytest.raises(ValueError, match="no batches"):
+        train_bnn(cfg, MODEL, lambda epoch: [], None, tmp_path / "empty", progress=False)
+
+
+def test_train_config_validation() -> None:
+    assert BNNTrainConfig().lambda_distance == 0.0
+    assert BNNTrainConfig().device == "auto"
+    cfg = BNNTrainConfig(pretrain_epochs=2, mixed_epochs=3)
+    assert cfg.total_epochs == 5
+    assert [cfg.phase(e) for e in range(5)] == ["pretrain"] * 2 + ["mixed"] * 3
+    bad: list[tuple[dict[str, object], str]] = [
+        ({"device": "gpu"}, "device"), ({"lr": 0}, "lr"),
+        ({"lambda_distance": -1}, "lambda_distance"), ({"epochs": 3}, "epochs"),
+    ]
+    for data, field in bad:
+        with pytest.raises(ConfigError, match=field):
+            validate(BNNTrainConfig, data)
+    assert train_mod.resolve_device("cpu") == torch.device("cpu")
+
+
+def test_run_restores_torch_settings(data: dict[str, np.ndarray], tmp_path: Path) -> None:
+    threads = torch.get_num_threads()
+    det = torch.are_deterministic_algorithms_enabled()
+    train_fn, _ = _fns(data, 16, 16, stratify_from=1)
+    cfg = _small_cfg(pretrain_epochs=1, mixed_epochs=0, num_threads=threads + 1)
+    train_bnn(cfg, MODEL, train_fn, None, tmp_path / "run", progress=False)
+    assert torch.get_num_threads() == threads
+    assert torch.are_deterministic_algorithms_enabled() == det
+
+
+# ---------------------------------------------------------------------------------------
+# Batches
+
+
+def test_stratified_batches_hold_every_scenario(data: dict[str, np.ndarray]) -> None:
+    fn = array_batches_fn(data["clean"], data["noisy"], data["scenario"],
+                          batch_size=16, seed=3, stratify_from_epoch=1)
+    mixed = list(fn(1))
+    assert sum(b.noisy.shape[0] for b in mixed) == 320
+    assert all(len(torch.unique(b.scenario)) == 3 for b in mixed)
+    seen = torch.cat([b.clean for b in mixed])
+    assert seen.shape == (320, *SHAPE)
+    # Each epoch's batches depend on (seed, epoch) only.
+    again = list(fn(1))
+    assert all(torch.equal(a.noisy, b.noisy) for a, b in zip(mixed, again, strict=True))
+    assert not torch.equal(next(iter(fn(2))).noisy, mixed[0].noisy)
+    first = next(iter(fn(0)))
+    assert first.noisy.dtype == torch.float32 and first.scenario.dtype == torch.int64
+
+
+def test_synthetic_dataset() -> None:
+    clean, noisy, scenario = synthetic_dataset(12, SHAPE, 3, seed=5)
+    assert clean.shape == noisy.shape == (12, *SHAPE) and scenario.shape == (12,)
+    assert clean.dtype == noisy.dtype == np.float32
+    assert 0.0 <= clean.min() and clean.max() <= 1.0 and 0.0 <= noisy.min() and noisy.max() <= 1.0
+    assert not np.array_equal(clean, noisy)
+    again = synthetic_dataset(12, SHAPE, 3, seed=5)
+    assert np.array_equal(again[0], clean) and np.array_equal(again[1], noisy)
