@@ -82,6 +82,35 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_train_bnn(args: argparse.Namespace) -> int:
+    from latentdrive.bnn.train import BNNTrainConfig
+    from latentdrive.config import validate
+    from latentdrive.experiments.bnn import train_on_dataset
+
+    overrides = parse_override_args(args.overrides)
+    base = {"lambda_distance": args.lam, "seed": args.seed}
+    if args.epochs is not None:
+        base.update(pretrain_epochs=min(args.epochs, 10), mixed_epochs=max(args.epochs - 10, 0))
+    cfg = validate(BNNTrainConfig, {**base, **overrides}, prefix="train.")
+    metrics = train_on_dataset(args.dataset, args.run_dir, cfg, args.latent_dim, channels=tuple(args.channels),
+                               val_fraction=args.val_fraction, resume=args.resume, progress=not args.quiet)
+    print(f"done: held-out loss {metrics.get('val_loss', float('nan')):.6f}, "
+          f"{metrics.get('samples_per_s', float('nan')):.0f} samples/s, peak RSS {metrics.get('peak_rss_mb', float('nan')):.0f} MB")
+    return 0
+
+
+def _cmd_bnn_study(args: argparse.Namespace) -> int:
+    from latentdrive.experiments.bnn import load_study_config, run_bnn_study
+
+    cfg = load_study_config(args.preset, parse_override_args(args.overrides))
+    report = run_bnn_study(cfg, args.out, progress=not args.quiet)
+    from latentdrive.experiments.bnn import format_report
+
+    print(format_report(report))
+    print(f"report: {args.out}/report.md, figures: {args.out}/figures/")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="latentdrive", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -111,6 +140,29 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_bench)
 
     add_collect_parser(sub)
+
+    s = sub.add_parser("train-bnn", help="train the bottleneck network on a collected dataset")
+    s.add_argument("dataset", help="dataset directory made by `latentdrive collect`")
+    s.add_argument("run_dir", help="where checkpoints, metrics.csv, tb/ and config.json go")
+    s.add_argument("--latent-dim", type=int, default=64, help="latent size d per channel pair (default 64)")
+    s.add_argument("--lambda", dest="lam", type=float, default=0.0, help="weight of the scenario-distance regularizer (default 0)")
+    s.add_argument("--epochs", type=int, default=None, help="total epochs (first 10 pretraining); default: the config's 10 + 90")
+    s.add_argument("--channels", type=int, nargs="+", default=[16, 32, 32], help="encoder channel widths (default 16 32 32)")
+    s.add_argument("--val-fraction", type=float, default=0.15, help="share of episodes held out (default 0.15)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR")
+    s.add_argument("-q", "--quiet", action="store_true")
+    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="training override, repeatable (--set batch_size=32 --set lr=3e-4)")
+    s.set_defaults(func=_cmd_train_bnn)
+
+    s = sub.add_parser("bnn-study", help="dataset, BNNs of latent size 16/32/64 and λ>0, evaluation, figures")
+    s.add_argument("out", help="study directory (rerun the same command to resume)")
+    s.add_argument("--preset", default="small", help="tiny, small (default, ~15 min on 2 CPU cores), paper, or a .yaml file")
+    s.add_argument("-q", "--quiet", action="store_true")
+    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="study override, repeatable (--set collect.episodes=20 --set train.mixed_epochs=4)")
+    s.set_defaults(func=_cmd_bnn_study)
     return p
 
 

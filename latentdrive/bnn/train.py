@@ -399,7 +399,7 @@ def train_bnn(
     ``resume=True`` continues from ``run_dir/checkpoint.safetensors`` (a fresh start when
     there is none); the model config and all training settings except the epoch counts,
     ``log_every``, ``device`` and ``num_threads`` must equal the saved ones.
-    ``resume=False`` refuses a ``run_dir`` that already holds a checkpoint.
+    ``resume=False`` refuses (CheckpointError) a ``run_dir`` that already holds a checkpoint.
 
     Returned metrics: ``epoch`` (completed), ``step``, ``train_loss``, ``train_recon``,
     ``train_reg``, ``val_loss``, ``val_mmd`` (NaN without validation), ``samples_per_s``,
@@ -410,8 +410,8 @@ def train_bnn(
     run.mkdir(parents=True, exist_ok=True)
     ckpt = run / CHECKPOINT_NAME
     if ckpt.exists() and not resume:
-        raise FileExistsError(
-            f"{ckpt} exists; pass resume=True to continue it or choose a new run_dir"
+        raise CheckpointError(
+            f"{ckpt} exists: resume it (resume=True, --resume) or choose a new run directory"
         )
     device = resolve_device(cfg.device)
     say: Callable[[str], None] = (lambda s: print(s, flush=True)) if progress else (lambda s: None)

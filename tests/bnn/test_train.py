@@ -216,7 +216,7 @@ def test_run_dir_guards(data: dict[str, np.ndarray], tmp_path: Path) -> None:
     run = tmp_path / "run"
     cfg = _small_cfg(mixed_epochs=0)
     train_bnn(cfg, MODEL, train_fn, None, run, progress=False)
-    with pytest.raises(FileExistsError, match="resume=True"):
+    with pytest.raises(CheckpointError, match="resume=True"):
         train_bnn(cfg, MODEL, train_fn, None, run, progress=False)
     with pytest.raises(CheckpointError, match="model config") as exc:
         train_bnn(cfg, MODEL.replace(latent_dim=32), train_fn, None, run, resume=True,

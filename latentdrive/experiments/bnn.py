@@ -1,0 +1,281 @@
+"""The bottleneck-network study: dataset → BNNs of several latent sizes and λ → evaluation.
+
+``latentdrive bnn-study OUT`` runs, resumably:
+
+1. ``collect`` a mixed-scenario denoising dataset into ``OUT/dataset``;
+2. train one BNN per latent size (λ = 0) and, at the largest size, one per λ > 0, each in
+   ``OUT/runs/<name>`` on the same episode split (validation episodes are held out);
+3. evaluate every run on the held-out episodes: reconstruction error, and the 5×5
+   scenario distance (MMD², :mod:`latentdrive.bnn.distance`) in its latent space and in
+   a raw-input baseline space;
+4. write ``OUT/report.json``, ``OUT/report.md`` and the figures in ``OUT/figures``.
+
+Every step skips what is already done, so an interrupted study continues where it stopped.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from pydantic import Field, field_validator
+
+from latentdrive.bnn.batch import BNNBatch
+from latentdrive.bnn.checkpoint import atomic_write_text
+from latentdrive.bnn.distance import distance_matrix
+from latentdrive.bnn.train import BNNTrainConfig, evaluate_bnn, load_trained_bottleneck, train_bnn
+from latentdrive.config import Config, ConfigError, load_yaml, merge_overrides, validate
+from latentdrive.data.collect import CollectConfig, collect
+from latentdrive.data.dataset import ShardDataset
+from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
+
+__all__ = [
+    "BNNStudyConfig",
+    "HeldOut",
+    "held_out",
+    "load_study_config",
+    "run_bnn_study",
+    "run_name",
+    "train_on_dataset",
+]
+
+PRESETS_DIR = Path(__file__).parent / "presets"
+STUDY_PRESETS = ("tiny", "small", "paper")
+
+
+class BNNStudyConfig(Config):
+    """What the BNN study collects, trains and evaluates."""
+
+    collect: CollectConfig = Field(default_factory=lambda: CollectConfig.model_validate({}), description="The dataset.")
+    train: BNNTrainConfig = Field(default_factory=lambda: BNNTrainConfig.model_validate({}), description="Training of every run (lambda_distance is set per run).")
+    channels: tuple[int, ...] = Field((16, 32, 32), min_length=1, max_length=6, description="Encoder channel widths of every run's BNN.")
+    latent_dims: list[int] = Field(default_factory=lambda: [16, 32, 64], min_length=1, description="Latent sizes d compared at λ = 0 (the paper's 16, 32, 64).")
+    lambdas: list[float] = Field(default_factory=lambda: [0.01], description="λ > 0 values trained at the largest latent size.")
+    val_fraction: float = Field(0.15, gt=0.0, lt=1.0, description="Share of each scenario's episodes held out for evaluation.")
+    eval_samples: int = Field(300, ge=10, le=100_000, description="Held-out samples per scenario used for the distance matrices and figures.")
+    raw_pool: int = Field(4, ge=1, le=64, description="Average-pooling factor over H and W of the raw-input baseline space.")
+
+    @field_validator("lambdas")
+    @classmethod
+    def _positive(cls, v: list[float]) -> list[float]:
+        if any(x <= 0 for x in v):
+            raise ValueError("every λ must be > 0 (λ = 0 runs are the latent_dims runs)")
+        return v
+
+
+def load_study_config(preset: str, overrides: dict[str, Any] | None = None) -> BNNStudyConfig:
+    """A named preset (``tiny``, ``small``, ``paper``) or a YAML file, with dotted overrides."""
+    if preset in STUDY_PRESETS:
+        data = load_yaml(PRESETS_DIR / f"bnn-{preset}.yaml")
+    elif preset.endswith((".yaml", ".yml")):
+        data = load_yaml(preset)
+    else:
+        raise ConfigError(f"unknown study preset {preset!r}: choose one of {', '.join(STUDY_PRESETS)} or a .yaml file")
+    return validate(BNNStudyConfig, merge_overrides(data, overrides or {}))
+
+
+def run_name(latent_dim: int, lam: float = 0.0) -> str:
+    """Directory name of a run: ``d64`` or ``d64-lam0.01``."""
+    return f"d{latent_dim}" if lam == 0 else f"d{latent_dim}-lam{lam:g}"
+
+
+def _split(ds: ShardDataset, val_fraction: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    return ds.split_by_episode(val_fraction, seed)
+
+
+def train_on_dataset(
+    dataset_dir: str | Path,
+    run_dir: str | Path,
+    train_cfg: BNNTrainConfig,
+    latent_dim: int,
+    channels: tuple[int, ...] = (16, 32, 32),
+    val_fraction: float = 0.15,
+    resume: bool = False,
+    progress: bool = True,
+) -> dict[str, float]:
+    """Train one BNN on a collected dataset, holding out ``val_fraction`` of its episodes.
+
+    Pretraining batches are plainly shuffled; mixed-phase batches hold every scenario.
+    The split (by episode) depends only on ``train_cfg.seed`` and is saved to
+    ``run_dir/split.json``.
+    """
+    ds = ShardDataset(dataset_dir)
+    train_ids, val_ids = _split(ds, val_fraction, train_cfg.seed)
+    _, t, h, w = ds.sample_shape
+    model_cfg = BottleneckConfig(input_shape=(t, h, w), latent_dim=latent_dim, channels=channels)
+    plain = ds.batches_fn(train_cfg.batch_size, train_ids, seed=train_cfg.seed, mixed=False)
+    mixed = ds.batches_fn(train_cfg.batch_size, train_ids, seed=train_cfg.seed, mixed=True)
+
+    def train_fn(epoch: int) -> Iterator[BNNBatch]:
+        return (plain if train_cfg.phase(epoch) == "pretrain" else mixed)(epoch)
+
+    def val_fn() -> Iterator[BNNBatch]:
+        return ds.batches(train_cfg.batch_size, val_ids, seed=train_cfg.seed, epoch=0, mixed=False)
+
+    run = Path(run_dir)
+    run.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(run / "split.json", json.dumps({
+        "dataset": str(Path(dataset_dir).resolve()), "val_fraction": val_fraction,
+        "train_episodes": train_ids.tolist(), "val_episodes": val_ids.tolist()}) + "\n")
+    return train_bnn(train_cfg, model_cfg, train_fn, val_fn, run, resume=resume, progress=progress)
+
+
+@dataclass
+class HeldOut:
+    """Held-out samples, at most ``per_scenario`` of each scenario, in dataset order.
+
+    ``noisy``/``clean``: ``(n, 4, T, H, W)`` float32; ``scenario``: ``(n,)`` int64 indices
+    into ``names``.
+    """
+
+    names: list[str]
+    noisy: np.ndarray
+    clean: np.ndarray
+    scenario: np.ndarray
+
+    def by_scenario(self, features: np.ndarray) -> dict[str, np.ndarray]:
+        """Split ``(n, ...)`` features into one array per scenario present."""
+        return {name: features[self.scenario == i] for i, name in enumerate(self.names) if np.any(self.scenario == i)}
+
+    def first(self, name: str) -> int:
+        """Index of the first held-out sample of scenario ``name`` (-1 when absent)."""
+        if name not in self.names:
+            return -1
+        idx = np.flatnonzero(self.scenario == self.names.index(name))
+        return int(idx[0]) if idx.size else -1
+
+
+def held_out(ds: ShardDataset, episodes: np.ndarray, per_scenario: int, seed: int = 0) -> HeldOut:
+    """Collect up to ``per_scenario`` samples of each scenario from ``episodes``.
+
+    Samples are drawn from a shuffled pass (so they spread over episodes), then kept in
+    their pass order; memory is ``per_scenario × scenarios × 2 × 4·T·H·W × 4`` bytes.
+    """
+    names = list(ds.scenario_names)
+    keep: dict[str, list[np.ndarray]] = {"noisy": [], "clean": [], "scenario": []}
+    counts = np.zeros(len(names), dtype=np.int64)
+    for batch in ds.batches(256, episodes, seed=seed, epoch=0, mixed=False):
+        s = batch.scenario.numpy()
+        take = np.zeros(len(s), dtype=bool)
+        for i in range(len(s)):  # per sample of a 256-batch, not a hot path
+            if counts[s[i]] < per_scenario:
+                take[i] = True
+                counts[s[i]] += 1
+        keep["noisy"].append(batch.noisy.numpy()[take])
+        keep["clean"].append(batch.clean.numpy()[take])
+        keep["scenario"].append(s[take])
+        if np.all(counts[np.unique(ds.episode_scenario(episodes))] >= per_scenario):
+            break
+    return HeldOut(names, *(np.concatenate(keep[k]) for k in ("noisy", "clean", "scenario")))
+
+
+@torch.no_grad()
+def encode(model: BottleneckNetwork, x: np.ndarray, batch: int = 128) -> np.ndarray:
+    """Latents ``(n, 3·d)`` of observations ``x`` ``(n, 4, T, H, W)``."""
+    out = [model.encode(torch.from_numpy(x[i:i + batch])).flatten(1).numpy() for i in range(0, len(x), batch)]
+    return np.concatenate(out) if out else np.zeros((0, model.latent_size), np.float32)
+
+
+@torch.no_grad()
+def reconstruct(model: BottleneckNetwork, x: np.ndarray) -> np.ndarray:
+    """Reconstructions ``(n, 3, 2, T, H, W)`` of noisy observations ``x``."""
+    return model(torch.from_numpy(x))[0].numpy()
+
+
+def raw_features(x: np.ndarray, pool: int) -> np.ndarray:
+    """The raw-input baseline space: ``x`` average-pooled by ``pool`` over H, W and flattened."""
+    t = torch.from_numpy(x)
+    n, _c, _tt, _h, _w = t.shape
+    pooled = F.avg_pool3d(t, kernel_size=(1, pool, pool), ceil_mode=True) if pool > 1 else t
+    return pooled.reshape(n, -1).numpy()
+
+
+def _mean_offdiag(m: np.ndarray) -> float:
+    s = m.shape[0]
+    return float(m[~np.eye(s, dtype=bool)].mean()) if s > 1 else float("nan")
+
+
+def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
+    """Held-out reconstruction error and latent scenario distances of one trained run."""
+    model = load_trained_bottleneck(run_dir)
+    metrics = evaluate_bnn(model, ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False),
+                           torch.device("cpu"), mmd_samples=2)
+    names, lat = distance_matrix(data.by_scenario(encode(model, data.noisy)))
+    return {"val_recon": metrics["val_loss"], "latent_scenarios": names, "latent_distance": lat.tolist(),
+            "mean_between_scenario_distance": _mean_offdiag(lat)}
+
+
+def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
+                  say: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run (or resume) the whole study into ``out``; returns the report it writes."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(out / "study_config.json", json.dumps(cfg.model_dump(mode="json"), indent=1) + "\n")
+    say(f"[1/4] dataset -> {out / 'dataset'}")
+    collect(cfg.collect, out / "dataset", progress=progress)
+    ds = ShardDataset(out / "dataset")
+    _, val_ids = _split(ds, cfg.val_fraction, cfg.train.seed)
+
+    runs: list[tuple[str, int, float]] = [(run_name(d), d, 0.0) for d in cfg.latent_dims]
+    runs += [(run_name(max(cfg.latent_dims), lam), max(cfg.latent_dims), lam) for lam in cfg.lambdas]
+    for i, (name, d, lam) in enumerate(runs):
+        say(f"[2/4] training {name} ({i + 1}/{len(runs)}) -> {out / 'runs' / name}")
+        train_on_dataset(out / "dataset", out / "runs" / name, cfg.train.replace(lambda_distance=lam), d,
+                         channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=progress)
+
+    say("[3/4] evaluating on held-out episodes")
+    data = held_out(ds, val_ids, cfg.eval_samples, seed=cfg.train.seed)
+    names, raw = distance_matrix(data.by_scenario(raw_features(data.noisy, cfg.raw_pool)))
+    report: dict[str, Any] = {
+        "dataset_samples": len(ds), "held_out_samples": len(data.scenario),
+        "raw_scenarios": names, "raw_distance": raw.tolist(), "raw_mean_between_scenario_distance": _mean_offdiag(raw),
+        "runs": {},
+    }
+    for name, d, lam in runs:
+        report["runs"][name] = {"latent_dim": d, "lambda": lam,
+                                **evaluate_run(out / "runs" / name, data, ds, val_ids, cfg.train.batch_size)}
+    atomic_write_text(out / "report.json", json.dumps(report, indent=1) + "\n")
+    atomic_write_text(out / "report.md", format_report(report))
+
+    say(f"[4/4] figures -> {out / 'figures'}")
+    from latentdrive.experiments.bnn_figures import write_bnn_figures
+
+    write_bnn_figures(out, cfg, data, report)
+    return report
+
+
+def _matrix_md(names: list[str], m: list[list[float]]) -> str:
+    lines = ["| | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    lines += [f"| {n} | " + " | ".join(f"{v:.3f}" for v in row) + " |" for n, row in zip(names, m, strict=True)]
+    return "\n".join(lines)
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The study's findings as Markdown tables."""
+    runs = report["runs"]
+    lines = [
+        "# Bottleneck network study",
+        "",
+        f"Dataset: {report['dataset_samples']} samples; evaluation on {report['held_out_samples']} "
+        "held-out samples (whole episodes held out).",
+        "",
+        "## Reconstruction error and scenario distance per run",
+        "",
+        "| run | d | λ | held-out L2 (mean per element) | mean between-scenario MMD² (latent) |",
+        "|---|---|---|---|---|",
+    ]
+    lines += [f"| {n} | {r['latent_dim']} | {r['lambda']:g} | {r['val_recon']:.6f} | {r['mean_between_scenario_distance']:.4f} |"
+              for n, r in runs.items()]
+    lines += ["", f"Raw-input baseline space: mean between-scenario MMD² {report['raw_mean_between_scenario_distance']:.4f}.",
+              "", "## Scenario distance (MMD²), raw-input baseline space", "",
+              _matrix_md(report["raw_scenarios"], report["raw_distance"])]
+    for n, r in runs.items():
+        lines += ["", f"## Scenario distance (MMD²), latent space of {n}", "",
+                  _matrix_md(r["latent_scenarios"], r["latent_distance"])]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,143 @@
+"""Figures of the bottleneck-network study (the paper's ae_loss, reconstruction_fullpage,
+latent_rep), plus the scenario distance matrices the paper names but never shows."""
+
+from __future__ import annotations
+
+import csv
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+import torch
+
+from latentdrive.bnn.train import load_trained_bottleneck
+from latentdrive.models.bottleneck import BottleneckNetwork
+from latentdrive.observe import CHANNELS
+
+if TYPE_CHECKING:
+    from latentdrive.experiments.bnn import BNNStudyConfig, HeldOut
+
+__all__ = ["write_bnn_figures"]
+
+SHOWN = ("roundabout", "intersection")
+
+
+def _save(fig: plt.Figure, path: Path) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp.png")
+    fig.savefig(tmp, dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    tmp.replace(path)
+    return path
+
+
+def _epoch_rows(run_dir: Path) -> list[dict[str, str]]:
+    with (run_dir / "metrics.csv").open(newline="") as f:
+        return [r for r in csv.DictReader(f) if r["kind"] == "epoch"]
+
+
+def loss_curves(out: Path, run_names: list[str]) -> Path:
+    """Training and held-out reconstruction loss per epoch, one line pair per run."""
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for i, name in enumerate(run_names):
+        rows = _epoch_rows(out / "runs" / name)
+        epochs = [int(r["epoch"]) + 1 for r in rows]
+        color = f"C{i}"
+        ax.plot(epochs, [float(r["recon"]) for r in rows], color=color, label=f"{name} train")
+        ax.plot(epochs, [float(r["val_loss"]) for r in rows], color=color, linestyle="--", label=f"{name} held-out")
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("L2 reconstruction loss (mean per element)")
+    ax.set_yscale("log")
+    ax.legend(fontsize=7, ncol=2)
+    ax.set_title("BNN training (dashed: held-out episodes)")
+    return _save(fig, out / "figures" / "bnn_loss.png")
+
+
+def _channels_of(recon: np.ndarray) -> np.ndarray:
+    """Per-channel maps ``(4, H, W)`` (latest frame) from pair reconstructions ``(3, 2, T, H, W)``."""
+    return np.stack([recon[0, 0, -1], recon[0, 1, -1], recon[1, 0, -1], recon[2, 0, -1]])
+
+
+def reconstructions(out: Path, data: HeldOut, run_names: list[str]) -> Path:
+    """Ground truth, noisy input and each run's reconstruction for a roundabout and an intersection."""
+    shown = [s for s in SHOWN if data.first(s) >= 0] or [data.names[int(data.scenario[0])]]
+    rows = ["ground truth", "noisy input", *run_names]
+    fig, axes = plt.subplots(len(rows), 4 * len(shown), figsize=(3.2 * 4 * len(shown), 1.9 * len(rows)), squeeze=False)
+    models = {name: load_trained_bottleneck(out / "runs" / name) for name in run_names}
+    for k, scen in enumerate(shown):
+        i = data.first(scen)
+        images = [data.clean[i, :, -1], data.noisy[i, :, -1]]
+        with torch.no_grad():
+            for name in run_names:
+                images.append(_channels_of(models[name](torch.from_numpy(data.noisy[i:i + 1]))[0][0].numpy()))
+        for r, img in enumerate(images):
+            for c in range(4):
+                ax = axes[r, 4 * k + c]
+                ax.imshow(img[c], vmin=0, vmax=1, cmap="viridis", interpolation="nearest")
+                ax.set_xticks([])
+                ax.set_yticks([])
+                if r == 0:
+                    ax.set_title(f"{scen}: {CHANNELS[c]}", fontsize=9)
+                if 4 * k + c == 0:
+                    ax.set_ylabel(rows[r], fontsize=9)
+    fig.suptitle("Reconstruction from held-out noisy input, latest frame (the paper's reconstruction figure)")
+    return _save(fig, out / "figures" / "bnn_reconstruction.png")
+
+
+def latents_before_after(out: Path, cfg: BNNStudyConfig, data: HeldOut, run_name: str) -> Path:
+    """Latents (3 pairs × d) of a roundabout and an intersection, at initialization and after training."""
+    trained = load_trained_bottleneck(out / "runs" / run_name)
+    # The initial weights are those train_bnn drew: the same seed, the same constructor.
+    torch.manual_seed(cfg.train.seed)
+    initial = BottleneckNetwork(trained.cfg).eval()
+    shown = [s for s in SHOWN if data.first(s) >= 0]
+    fig, axes = plt.subplots(len(shown), 2, figsize=(12, 1.6 * len(shown) + 0.8), squeeze=False)
+    with torch.no_grad():
+        for r, scen in enumerate(shown):
+            x = torch.from_numpy(data.noisy[data.first(scen):data.first(scen) + 1])
+            for c, (label, model) in enumerate((("before training", initial), ("after training", trained))):
+                z = model.encode(x)[0].numpy()
+                ax = axes[r, c]
+                im = ax.imshow(z, aspect="auto", cmap="magma", interpolation="nearest")
+                ax.set_yticks(range(3), ["HV+AV", "RL+AV", "MV+AV"], fontsize=8)
+                ax.set_title(f"{scen}, {label}", fontsize=9)
+                fig.colorbar(im, ax=ax, fraction=0.03)
+    axes[-1, 0].set_xlabel("latent unit")
+    axes[-1, 1].set_xlabel("latent unit")
+    fig.suptitle(f"Latent representation ({run_name})")
+    return _save(fig, out / "figures" / "bnn_latents.png")
+
+
+def distance_matrices(out: Path, report: dict[str, Any]) -> Path:
+    """The 5×5 scenario distance (MMD²) in the raw-input space and in each run's latent space."""
+    panels = [("raw input (pooled)", report["raw_scenarios"], np.array(report["raw_distance"]))]
+    panels += [(f"latent {n}", r["latent_scenarios"], np.array(r["latent_distance"])) for n, r in report["runs"].items()]
+    fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.6), squeeze=False)
+    for ax, (title, names, m) in zip(axes[0], panels, strict=True):
+        ax.imshow(m, cmap="Blues", vmin=0, vmax=max(float(m.max()), 1e-9))
+        for (i, j), v in np.ndenumerate(m):
+            ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7)
+        ax.set_xticks(range(len(names)), [n[:5] for n in names], fontsize=7, rotation=45)
+        ax.set_yticks(range(len(names)), [n[:5] for n in names], fontsize=7)
+        off = m[~np.eye(len(m), dtype=bool)].mean() if len(m) > 1 else float("nan")
+        ax.set_title(f"{title}\nmean off-diagonal {off:.3f}", fontsize=9)
+    fig.suptitle("Scenario distance: MMD² between scenarios' distributions")
+    return _save(fig, out / "figures" / "bnn_distance.png")
+
+
+def write_bnn_figures(out: str | Path, cfg: BNNStudyConfig, data: HeldOut, report: dict[str, Any]) -> list[Path]:
+    """Every figure of the study, into ``out/figures``."""
+    out = Path(out)
+    names = list(report["runs"])
+    plain = [n for n in names if report["runs"][n]["lambda"] == 0]
+    largest = max(plain, key=lambda n: report["runs"][n]["latent_dim"])
+    return [
+        loss_curves(out, names),
+        reconstructions(out, data, plain),
+        latents_before_after(out, cfg, data, largest),
+        distance_matrices(out, report),
+    ]

@@ -1,0 +1,93 @@
+import json
+
+import numpy as np
+import pytest
+
+from latentdrive.cli import main
+from latentdrive.config import ConfigError
+from latentdrive.experiments.bnn import (
+    format_report,
+    load_study_config,
+    raw_features,
+    run_bnn_study,
+    run_name,
+)
+
+
+@pytest.fixture(scope="module")
+def tiny_study(tmp_path_factory):
+    out = tmp_path_factory.mktemp("study")
+    cfg = load_study_config("tiny")
+    report = run_bnn_study(cfg, out, progress=False, say=lambda s: None)
+    return out, cfg, report
+
+
+def test_tiny_study_writes_report_and_figures(tiny_study):
+    out, _cfg, report = tiny_study
+    assert set(report["runs"]) == {"d4", "d8", "d8-lam0.01"}
+    for name, run in report["runs"].items():
+        assert (out / "runs" / name / "checkpoint.safetensors").exists()
+        m = np.array(run["latent_distance"])
+        assert m.shape == (3, 3) and np.allclose(m, m.T) and np.allclose(np.diag(m), 0)
+        assert run["val_recon"] > 0
+    assert json.loads((out / "report.json").read_text()) == report
+    assert "held-out L2" in (out / "report.md").read_text()
+    for fig in ("bnn_loss", "bnn_reconstruction", "bnn_latents", "bnn_distance"):
+        assert (out / "figures" / f"{fig}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_rerun_resumes_without_retraining(tiny_study):
+    out, cfg, report = tiny_study
+    ckpt = out / "runs" / "d4" / "checkpoint.safetensors"
+    before = ckpt.stat().st_mtime_ns
+    again = run_bnn_study(cfg, out, progress=False, say=lambda s: None)
+    assert ckpt.stat().st_mtime_ns == before
+    assert again["runs"]["d4"]["val_recon"] == pytest.approx(report["runs"]["d4"]["val_recon"])
+
+
+def test_held_out_episodes_are_not_trained_on(tiny_study):
+    out, _, _ = tiny_study
+    split = json.loads((out / "runs" / "d4" / "split.json").read_text())
+    assert split["val_episodes"] and not set(split["val_episodes"]) & set(split["train_episodes"])
+
+
+def test_run_names_and_presets():
+    assert run_name(64) == "d64" and run_name(64, 0.01) == "d64-lam0.01"
+    assert load_study_config("small").latent_dims == [16, 32, 64]
+    with pytest.raises(ConfigError, match="unknown study preset"):
+        load_study_config("huge")
+    with pytest.raises(ConfigError, match="lambdas"):
+        load_study_config("tiny", {"lambdas": [0.0]})
+
+
+def test_raw_features_pool():
+    x = np.arange(2 * 4 * 1 * 4 * 4, dtype=np.float32).reshape(2, 4, 1, 4, 4)
+    f = raw_features(x, 2)
+    assert f.shape == (2, 4 * 1 * 2 * 2)
+    assert f[0, 0] == pytest.approx(np.mean([0, 1, 4, 5]))
+
+
+def test_format_report_lists_every_run():
+    report = {"dataset_samples": 10, "held_out_samples": 4, "raw_scenarios": ["a", "b"],
+              "raw_distance": [[0, 1], [1, 0]], "raw_mean_between_scenario_distance": 1.0,
+              "runs": {"d4": {"latent_dim": 4, "lambda": 0.0, "val_recon": 0.5, "latent_scenarios": ["a", "b"],
+                              "latent_distance": [[0, 0.5], [0.5, 0]], "mean_between_scenario_distance": 0.5}}}
+    text = format_report(report)
+    assert "| d4 | 4 | 0 | 0.500000 | 0.5000 |" in text
+
+
+def test_train_bnn_cli_on_the_study_dataset(tiny_study, tmp_path, capsys):
+    out, _, _ = tiny_study
+    args = ["train-bnn", str(out / "dataset"), str(tmp_path / "run"), "--latent-dim", "4", "--epochs", "1",
+            "--channels", "4", "8", "-q", "--set", "batch_size=16"]
+    assert main(args) == 0
+    assert "held-out loss" in capsys.readouterr().out
+    # A second start without --resume refuses to overwrite; with it, it continues.
+    assert main(args) == 2
+    assert main([*args, "--resume"]) == 0
+
+
+def test_train_bnn_cli_rejects_a_missing_dataset(tmp_path, capsys):
+    assert main(["train-bnn", str(tmp_path / "nothing"), str(tmp_path / "run"), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "nothing" in err[0]
