@@ -111,6 +111,14 @@ def _cmd_bnn_study(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_figures(args: argparse.Namespace) -> int:
+    from latentdrive.experiments.bnn import figures_from_study
+
+    for path in figures_from_study(args.dir):
+        print(f"wrote {path}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="latentdrive", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -163,6 +171,11 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="study override, repeatable (--set collect.episodes=20 --set train.mixed_epochs=4)")
     s.set_defaults(func=_cmd_bnn_study)
+
+    s = sub.add_parser("figures", help="redraw the figures of a finished study")
+    s.add_argument("kind", choices=["bnn"], help="which study")
+    s.add_argument("dir", help="the study directory")
+    s.set_defaults(func=_cmd_figures)
     return p
 
 

@@ -38,6 +38,7 @@ from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 __all__ = [
     "BNNStudyConfig",
     "HeldOut",
+    "figures_from_study",
     "held_out",
     "load_study_config",
     "run_bnn_study",
@@ -248,6 +249,23 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
 
     write_bnn_figures(out, cfg, data, report)
     return report
+
+
+def figures_from_study(out: str | Path) -> list[Path]:
+    """Redraw the figures of a finished study directory from its saved config and report."""
+    out = Path(out)
+    try:
+        cfg = validate(BNNStudyConfig, json.loads((out / "study_config.json").read_text()))
+        report = json.loads((out / "report.json").read_text())
+    except FileNotFoundError as exc:
+        raise ConfigError(f"{out}: not a finished study directory (missing {Path(exc.filename).name}); run `latentdrive bnn-study {out}`") from None
+    except json.JSONDecodeError as exc:
+        raise ConfigError(f"{out}: corrupt study file ({exc})") from None
+    ds = ShardDataset(out / "dataset")
+    _, val_ids = _split(ds, cfg.val_fraction, cfg.train.seed)
+    from latentdrive.experiments.bnn_figures import write_bnn_figures
+
+    return write_bnn_figures(out, cfg, held_out(ds, val_ids, cfg.eval_samples, seed=cfg.train.seed), report)
 
 
 def _matrix_md(names: list[str], m: list[list[float]]) -> str:

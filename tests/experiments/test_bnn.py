@@ -91,3 +91,13 @@ def test_train_bnn_cli_rejects_a_missing_dataset(tmp_path, capsys):
     assert main(["train-bnn", str(tmp_path / "nothing"), str(tmp_path / "run"), "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nothing" in err[0]
+
+
+def test_figures_command_redraws_and_rejects_non_study(tiny_study, tmp_path, capsys):
+    out, _, _ = tiny_study
+    fig = out / "figures" / "bnn_distance.png"
+    fig.unlink()
+    assert main(["figures", "bnn", str(out)]) == 0
+    assert fig.exists()
+    assert main(["figures", "bnn", str(tmp_path)]) == 2
+    assert "not a finished study directory" in capsys.readouterr().err
