@@ -119,6 +119,10 @@ def _cmd_figures(args: argparse.Namespace) -> int:
     return 0
 
 
+def _add_set(parser: argparse.ArgumentParser, help: str) -> None:
+    parser.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help=help)
+
+
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="latentdrive", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -134,8 +138,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--policy", choices=["random", "idle"], default="random")
     s.add_argument("--agent", type=int, default=0, help="which AV's view to show")
-    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="config override, repeatable (--set n_av=3 --set observation.frames=2)")
+    _add_set(s, "config override, repeatable (--set n_av=3 --set observation.frames=2)")
     s.set_defaults(func=_cmd_show)
 
     s = sub.add_parser("bench", help="env steps/s and observation cost vs highway-env's OccupancyGrid")
@@ -143,8 +146,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--steps", type=int, default=50, help="policy steps per scenario (default 50)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--json", default="", help="also write the rows to this JSON file")
-    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="observation override, repeatable (--set height=64 --set resolution=1.0)")
+    _add_set(s, "observation override, repeatable (--set height=64 --set resolution=1.0)")
     s.set_defaults(func=_cmd_bench)
 
     add_collect_parser(sub)
@@ -160,16 +162,14 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR")
     s.add_argument("-q", "--quiet", action="store_true")
-    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="training override, repeatable (--set batch_size=32 --set lr=3e-4)")
+    _add_set(s, "training override, repeatable (--set batch_size=32 --set lr=3e-4)")
     s.set_defaults(func=_cmd_train_bnn)
 
     s = sub.add_parser("bnn-study", help="dataset, BNNs of latent size 16/32/64 and λ>0, evaluation, figures")
     s.add_argument("out", help="study directory (rerun the same command to resume)")
     s.add_argument("--preset", default="small", help="tiny, small (default, ~15 min on 2 CPU cores), paper, or a .yaml file")
     s.add_argument("-q", "--quiet", action="store_true")
-    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                   help="study override, repeatable (--set collect.episodes=20 --set train.mixed_epochs=4)")
+    _add_set(s, "study override, repeatable (--set collect.episodes=20 --set train.mixed_epochs=4)")
     s.set_defaults(func=_cmd_bnn_study)
 
     s = sub.add_parser("figures", help="redraw the figures of a finished study")

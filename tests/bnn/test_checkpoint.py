@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -18,14 +17,7 @@ from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 CFG = BottleneckConfig(input_shape=(2, 8, 16), latent_dim=8, channels=(4, 8))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # Tiny workloads: one thread is as fast, and spares a busy machine the
-    # oversubscription that can slow multi-threaded kernels several-fold.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _trained(cfg: BottleneckConfig = CFG, steps: int = 3, seed: int = 0):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Iterator
 
 import numpy as np
 import pytest
@@ -17,15 +16,7 @@ from latentdrive.bnn.distance import (
     mmd2,
 )
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # Tiny workloads: one thread is as fast, and spares a busy machine the
-    # oversubscription that can slow multi-threaded kernels several-fold.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _gauss(n: int, mean: float, seed: int, dim: int = 2) -> torch.Tensor:

@@ -28,14 +28,7 @@ SHAPE = (4, 2, 16, 32)
 MODEL = BottleneckConfig(input_shape=SHAPE[1:], latent_dim=16, channels=(8, 16, 16))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # Tiny workloads: one thread is as fast, and spares a busy machine the
-    # oversubscription that can slow multi-threaded kernels several-fold.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

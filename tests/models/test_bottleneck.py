@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
-
 import pytest
 import torch
 
@@ -19,14 +17,7 @@ from latentdrive.models.bottleneck import (
 SMALL = {"input_shape": (2, 16, 32), "channels": (8, 16, 16)}
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread() -> Iterator[None]:
-    # Tiny workloads: one thread is as fast, and spares a busy machine the
-    # oversubscription that can slow multi-threaded kernels several-fold.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _net(**fields: object) -> BottleneckNetwork:
