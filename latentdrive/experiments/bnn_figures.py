@@ -28,6 +28,7 @@ SHOWN = ("roundabout", "intersection")
 
 def _save(fig: plt.Figure, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
+    fig.tight_layout()
     tmp = path.with_name(path.name + ".tmp.png")
     fig.savefig(tmp, dpi=90, bbox_inches="tight")
     plt.close(fig)
@@ -95,7 +96,7 @@ def latents_before_after(out: Path, cfg: BNNStudyConfig, data: HeldOut, run_name
     torch.manual_seed(cfg.train.seed)
     initial = BottleneckNetwork(trained.cfg).eval()
     shown = [s for s in SHOWN if data.first(s) >= 0]
-    fig, axes = plt.subplots(len(shown), 2, figsize=(12, 1.6 * len(shown) + 0.8), squeeze=False)
+    fig, axes = plt.subplots(len(shown), 2, figsize=(12, 2.4 * len(shown) + 0.8), squeeze=False)
     with torch.no_grad():
         for r, scen in enumerate(shown):
             x = torch.from_numpy(data.noisy[data.first(scen):data.first(scen) + 1])
