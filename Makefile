@@ -19,6 +19,7 @@ $(STAMP): pyproject.toml
 run: $(STAMP)
 	$(BIN)/latentdrive show merge --out runs/show-merge.png
 	$(BIN)/latentdrive bench --steps 20
+	$(BIN)/latentdrive bench --backend fast --steps 20 --batch-size 32
 
 ## test: the default (fast) test suite
 test: $(STAMP)

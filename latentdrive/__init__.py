@@ -1,6 +1,7 @@
 """latentdrive: generalizable driving policies from restricted latent representations.
 
-``latentdrive.make_env("merge", n_av=3)`` builds a scenario's gymnasium env; importing the
+``latentdrive.make_env("merge", n_av=3)`` builds a scenario's gymnasium env,
+``latentdrive.make_vec("merge", 64)`` a batch of them on the fast backend; importing the
 package registers ``latentdrive/<scenario>-v0`` with gymnasium.
 """
 
@@ -9,10 +10,11 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 __version__ = "0.1.0"
-__all__ = ["__version__", "make_env"]
+__all__ = ["__version__", "make_env", "make_vec"]
 
 if TYPE_CHECKING:
     from latentdrive.env import DrivingEnv
+    from latentdrive.vec import DrivingVecEnv
 
 
 def make_env(scenario: str, **overrides: Any) -> DrivingEnv:
@@ -20,6 +22,13 @@ def make_env(scenario: str, **overrides: Any) -> DrivingEnv:
     from latentdrive.env import make_env as _make_env
 
     return _make_env(scenario, **overrides)
+
+
+def make_vec(scenario: Any, num_envs: int, backend: str = "fast", **overrides: Any) -> DrivingVecEnv:
+    """Create a vector env of ``num_envs`` environments; see :func:`latentdrive.vec.make_vec`."""
+    from latentdrive.vec import make_vec as _make_vec
+
+    return _make_vec(scenario, num_envs, backend=backend, **overrides)
 
 
 def _register() -> None:

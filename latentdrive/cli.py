@@ -62,8 +62,12 @@ def _cmd_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def _say(line: str) -> None:
+    """Progress goes to stderr, results to stdout."""
+    print(line, file=sys.stderr)
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
-    from latentdrive.bench import format_table, run_bench
     from latentdrive.config import ObservationConfig, validate
     from latentdrive.scenarios import SCENARIOS, get_spec
 
@@ -73,12 +77,51 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     if args.steps < 1:
         raise LatentDriveError("--steps must be at least 1")
     cfg = validate(ObservationConfig, parse_override_args(args.overrides), prefix="observation.")
-    print(f"benchmarking {len(names)} scenario(s), {args.steps} steps each ...", file=sys.stderr)
-    rows = run_bench(names, steps=args.steps, seed=args.seed, obs_cfg=cfg,
-                     progress=lambda line: print(line, file=sys.stderr))
-    print(format_table(rows, cfg))
+    _say(f"benchmarking {len(names)} scenario(s) on the {args.backend} backend ...")
+    if args.backend == "fast":
+        from latentdrive.sim.fast.validate import format_throughput, measure_throughput
+
+        rows = []
+        for name in names:
+            for maps in (False, True):
+                rows.append(measure_throughput(name, batch_size=args.batch_size, fast_steps=args.steps,
+                                               highway_steps=args.steps, velocity_maps=maps, obs_cfg=cfg, seed=args.seed))
+            _say(f"  {name}: done")
+        print(f"fast batch of {args.batch_size} vs highway-env, one core, same run; "
+              f"'maps': a VelocityMap per AV per step ({cfg.height}x{cfg.width}); agent observations/s = steps/s × AVs")
+        print(format_throughput(rows))
+        dicts = [r.as_dict() for r in rows]
+    else:
+        from latentdrive.bench import format_table, run_bench
+
+        hrows = run_bench(names, steps=args.steps, seed=args.seed, obs_cfg=cfg, progress=_say)
+        print(format_table(hrows, cfg))
+        dicts = [r.as_dict() for r in hrows]
+    if args.json:
+        Path(args.json).write_text(json.dumps(dicts, indent=1))
+    return 0
+
+
+def _cmd_validate_backend(args: argparse.Namespace) -> int:
+    from latentdrive.scenarios import SCENARIOS, get_spec
+    from latentdrive.sim.fast.validate import fidelity_table, format_fidelity
+
+    names = args.scenarios.split(",") if args.scenarios else list(SCENARIOS)
+    for name in names:
+        get_spec(name)
+    if args.episodes < 2:
+        raise LatentDriveError("--episodes must be at least 2")
+    rows = fidelity_table(names, episodes=args.episodes, policies=tuple(args.policies.split(",")), seed=args.seed,
+                          progress=_say)
+    print(f"{args.episodes} seeded episodes per scenario and policy on both backends, same seeds and actions; "
+          "± is the half-width of the 95% interval")
+    print(format_fidelity(rows))
     if args.json:
         Path(args.json).write_text(json.dumps([r.as_dict() for r in rows], indent=1))
+    bad = [r for r in rows if not r.ok]
+    if bad:
+        print(f"latentdrive: {len(bad)} statistic(s) outside tolerance", file=sys.stderr)
+        return 1
     return 0
 
 
@@ -141,13 +184,24 @@ def build_parser() -> argparse.ArgumentParser:
     _add_set(s, "config override, repeatable (--set n_av=3 --set observation.frames=2)")
     s.set_defaults(func=_cmd_show)
 
-    s = sub.add_parser("bench", help="env steps/s and observation cost vs highway-env's OccupancyGrid")
+    s = sub.add_parser("bench", help="throughput: highway-env vs our observation (default) or vs the fast backend")
+    s.add_argument("--backend", choices=["highway", "fast"], default="highway",
+                   help="highway: sim steps/s and VelocityMap vs OccupancyGrid cost; fast: fast vs highway-env steps/s")
     s.add_argument("--scenarios", default="", help="comma-separated names (default: all five)")
-    s.add_argument("--steps", type=int, default=50, help="policy steps per scenario (default 50)")
+    s.add_argument("--steps", type=int, default=50, help="policy steps per scenario and backend (default 50)")
+    s.add_argument("--batch-size", type=int, default=64, help="environments per fast batch (default 64)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--json", default="", help="also write the rows to this JSON file")
     _add_set(s, "observation override, repeatable (--set height=64 --set resolution=1.0)")
     s.set_defaults(func=_cmd_bench)
+
+    s = sub.add_parser("validate-backend", help="fidelity of the fast backend to highway-env: episode statistics of both")
+    s.add_argument("--scenarios", default="", help="comma-separated names (default: all five)")
+    s.add_argument("--episodes", type=int, default=200, help="seeded episodes per scenario and policy (default 200)")
+    s.add_argument("--policies", default="random,idle", help="comma-separated: random, idle (default both)")
+    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--json", default="", help="also write the rows to this JSON file")
+    s.set_defaults(func=_cmd_validate_backend)
 
     add_collect_parser(sub)
 

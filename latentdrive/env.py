@@ -23,7 +23,7 @@ from latentdrive.scenarios import RewardConfig, ScenarioSpec, get_spec
 from latentdrive.scene import Scene
 from latentdrive.sim import make_backend
 
-__all__ = ["DrivingEnv", "EnvConfig", "make_env", "make_env_config"]
+__all__ = ["DrivingEnv", "EnvConfig", "Episode", "make_env", "make_env_config", "resolve_config"]
 
 
 class EnvConfig(Config):
@@ -32,7 +32,7 @@ class EnvConfig(Config):
     scenario: ScenarioSpec = Field(description="The scenario to simulate.")
     observation: ObservationConfig = Field(default_factory=ObservationConfig, description="VelocityMap settings.")
     reward: RewardConfig = Field(default_factory=RewardConfig, description="Per-agent reward weights.")
-    backend: Literal["highway"] = Field("highway", description="Simulator backend.")
+    backend: Literal["highway", "fast"] = Field("highway", description="Simulator backend: 'highway' (highway-env, the reference) or 'fast' (compiled, batched, same simulation).")
     clean_observation: bool = Field(False, description="Also return the noise-free stack in info['clean_observation'] (for denoising datasets).")
 
 
@@ -52,6 +52,89 @@ def make_env_config(scenario: str | ScenarioSpec, **overrides: Any) -> EnvConfig
     return validate(EnvConfig, merge_overrides({"scenario": spec}, env_part))
 
 
+class Episode:
+    """The bookkeeping of one environment's episode, shared by the single and vector envs.
+
+    Turns the backend's Scenes into stacked observations, per-agent rewards, the end of
+    the episode and ``info``. Backend-neutral: it only reads Scenes.
+    """
+
+    def __init__(self, config: EnvConfig) -> None:
+        self.config = config
+        self.spec = config.scenario
+        self._stack = FrameStack(config.observation.frames)
+        self._clean_stack = FrameStack(config.observation.frames)
+        self._noise_rng = np.random.default_rng(0)
+        self.scene: Scene | None = None
+        self.steps = 0
+        self.seed = 0
+
+    def start(self, scene: Scene, episode_seed: int) -> tuple[np.ndarray, dict[str, Any]]:
+        """Begin an episode at ``scene``, the backend's reset for ``episode_seed``."""
+        self.seed, self.scene, self.steps = episode_seed, scene, 0
+        # Sensor noise has its own stream, derived from the episode seed.
+        self._noise_rng = np.random.default_rng([episode_seed, 2])
+        self._stack.reset(self._frame(scene, noisy=True))
+        if self.config.clean_observation:
+            self._clean_stack.reset(self._frame(scene, noisy=False))
+        return self._stack.stack, self._info(scene, np.zeros(self.spec.n_av))
+
+    def check_actions(self, action: np.ndarray) -> np.ndarray:
+        """``action`` as ``(n_av,)`` int64, or ValueError."""
+        actions = np.asarray(action, dtype=np.int64).reshape(-1)
+        if actions.shape != (self.spec.n_av,) or actions.min() < 0 or actions.max() >= N_ACTIONS:
+            raise ValueError(f"action must be {self.spec.n_av} integers in [0, {N_ACTIONS}), got {action!r}")
+        return actions
+
+    def advance(self, scene: Scene) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        """Account for one policy step that led to ``scene``."""
+        before = self.scene
+        if before is None:
+            raise RuntimeError("call reset() first")
+        self.scene = scene
+        self.steps += 1
+        ag, prev = scene.agents, before.agents
+        rewards = agent_rewards(
+            scene.speed[ag], scene.crashed[ag], scene.arrived[ag],  # type: ignore[index]
+            before.crashed[prev], before.arrived[prev],  # type: ignore[index]
+            self.spec.reward_speed_range, self.config.reward,
+        )
+        terminated = bool(scene.crashed[ag].any() or scene.arrived[ag].all())  # type: ignore[index]
+        truncated = (not terminated) and self.steps >= self.spec.max_steps
+        self._stack.push(self._frame(scene, noisy=True))
+        if self.config.clean_observation:
+            self._clean_stack.push(self._frame(scene, noisy=False))
+        return self._stack.stack, float(rewards.mean()), terminated, truncated, self._info(scene, rewards)
+
+    def _frame(self, scene: Scene, noisy: bool) -> np.ndarray:
+        return render_frame(scene, scene.agents, self.config.observation, rng=self._noise_rng if noisy else None)
+
+    def _info(self, scene: Scene, rewards: np.ndarray) -> dict[str, Any]:
+        info: dict[str, Any] = {
+            "scene": scene,
+            "agent_rewards": rewards,
+            "crashed": scene.crashed[scene.agents].copy(),
+            "arrived": scene.arrived[scene.agents].copy(),  # type: ignore[index]
+            "scenario": self.spec.name,
+            "episode_seed": self.seed,
+        }
+        if self.config.clean_observation:
+            info["clean_observation"] = self._clean_stack.stack
+        return info
+
+
+def resolve_config(scenario: str | ScenarioSpec | None, config: EnvConfig | None, overrides: dict[str, Any]) -> EnvConfig:
+    """The EnvConfig named by a scenario and/or a config, with overrides applied on top."""
+    if config is None:
+        if scenario is None:
+            raise ConfigError("an env needs a scenario or a config")
+        return make_env_config(scenario, **overrides)
+    if overrides or scenario is not None:
+        return make_env_config(scenario or config.scenario, **merge_overrides(
+            {k: v for k, v in config.model_dump().items() if k != "scenario"}, overrides))
+    return config
+
+
 class DrivingEnv(gym.Env[np.ndarray, np.ndarray]):
     """A mixed-autonomy driving scenario as a gymnasium Env.
 
@@ -69,83 +152,33 @@ class DrivingEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def __init__(self, scenario: str | ScenarioSpec | None = None, config: EnvConfig | None = None, **overrides: Any) -> None:
         super().__init__()
-        if config is None:
-            if scenario is None:
-                raise ConfigError("DrivingEnv needs a scenario or a config")
-            config = make_env_config(scenario, **overrides)
-        elif overrides or scenario is not None:
-            config = make_env_config(scenario or config.scenario, **merge_overrides(
-                {k: v for k, v in config.model_dump().items() if k != "scenario"}, overrides))
-        self.config = config
-        self.spec_ = config.scenario
+        self.config = resolve_config(scenario, config, overrides)
+        self.spec_ = self.config.scenario
         n_av = self.spec_.n_av
-        self.observation_space = gym.spaces.Box(0.0, 1.0, (n_av, *config.observation.shape), np.float32)
+        self.observation_space = gym.spaces.Box(0.0, 1.0, (n_av, *self.config.observation.shape), np.float32)
         self.action_space = gym.spaces.MultiDiscrete(np.full(n_av, N_ACTIONS, dtype=np.int64))
-        self._backend = make_backend(self.spec_, config.backend)
-        self._stack = FrameStack(config.observation.frames)
-        self._clean_stack = FrameStack(config.observation.frames)
-        self._noise_rng = np.random.default_rng(0)
-        self._scene: Scene | None = None
-        self._steps = 0
-        self._episode_seed = 0
+        self._backend = make_backend(self.spec_, self.config.backend)
+        self._episode = Episode(self.config)
 
     @property
     def scene(self) -> Scene:
         """The current Scene (after :meth:`reset`)."""
-        if self._scene is None:
+        if self._episode.scene is None:
             raise RuntimeError("call reset() first")
-        return self._scene
+        return self._episode.scene
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
         super().reset(seed=seed)
         # Episode seeds come from the env's generator: reset(seed=s) fixes the whole
         # sequence of episodes that follows, as gymnasium specifies.
-        self._episode_seed = int(self.np_random.integers(2**63 - 1))
-        self._noise_rng = np.random.default_rng([self._episode_seed, 2])
-        scene = self._backend.reset(self._episode_seed)
-        self._scene, self._steps = scene, 0
-        self._stack.reset(self._frame(scene, noisy=True))
-        if self.config.clean_observation:
-            self._clean_stack.reset(self._frame(scene, noisy=False))
-        zeros = np.zeros(self.spec_.n_av)
-        return self._stack.stack, self._info(scene, zeros)
+        episode_seed = int(self.np_random.integers(2**63 - 1))
+        return self._episode.start(self._backend.reset(episode_seed), episode_seed)
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
-        before = self.scene
-        actions = np.asarray(action, dtype=np.int64).reshape(-1)
-        if actions.shape != (self.spec_.n_av,) or actions.min() < 0 or actions.max() >= N_ACTIONS:
-            raise ValueError(f"action must be {self.spec_.n_av} integers in [0, {N_ACTIONS}), got {action!r}")
-        scene = self._backend.step(actions)
-        self._scene = scene
-        self._steps += 1
-        ag, prev = scene.agents, before.agents
-        rewards = agent_rewards(
-            scene.speed[ag], scene.crashed[ag], scene.arrived[ag],  # type: ignore[index]
-            before.crashed[prev], before.arrived[prev],  # type: ignore[index]
-            self.spec_.reward_speed_range, self.config.reward,
-        )
-        terminated = bool(scene.crashed[ag].any() or scene.arrived[ag].all())  # type: ignore[index]
-        truncated = (not terminated) and self._steps >= self.spec_.max_steps
-        self._stack.push(self._frame(scene, noisy=True))
-        if self.config.clean_observation:
-            self._clean_stack.push(self._frame(scene, noisy=False))
-        return self._stack.stack, float(rewards.mean()), terminated, truncated, self._info(scene, rewards)
-
-    def _frame(self, scene: Scene, noisy: bool) -> np.ndarray:
-        return render_frame(scene, scene.agents, self.config.observation, rng=self._noise_rng if noisy else None)
-
-    def _info(self, scene: Scene, rewards: np.ndarray) -> dict[str, Any]:
-        info: dict[str, Any] = {
-            "scene": scene,
-            "agent_rewards": rewards,
-            "crashed": scene.crashed[scene.agents].copy(),
-            "arrived": scene.arrived[scene.agents].copy(),  # type: ignore[index]
-            "scenario": self.spec_.name,
-            "episode_seed": self._episode_seed,
-        }
-        if self.config.clean_observation:
-            info["clean_observation"] = self._clean_stack.stack
-        return info
+        actions = self._episode.check_actions(action)
+        if self._episode.scene is None:
+            raise RuntimeError("call reset() first")
+        return self._episode.advance(self._backend.step(actions))
 
 
 def make_env(scenario: str | ScenarioSpec, **overrides: Any) -> DrivingEnv:

@@ -56,3 +56,24 @@ def test_bench_prints_ratio_and_json(tmp_path, capsys):
     assert row["scenario"] == "merge" and row["steps"] == 3
     assert row["grid_over_obs"] == pytest.approx(row["grid_ms_per_agent_frame"] / row["obs_ms_per_agent_frame"])
     assert row["sim_steps_per_s"] > 0
+
+
+def test_bench_fast_prints_both_backends_and_speedup(tmp_path, capsys):
+    path = tmp_path / "fast.json"
+    assert main(["bench", "--backend", "fast", "--scenarios", "exit", "--steps", "3", "--batch-size", "4",
+                 "--json", str(path)]) == 0
+    assert "speed-up" in capsys.readouterr().out
+    rows = json.loads(path.read_text())
+    assert [r["velocity_maps"] for r in rows] == [False, True]
+    for r in rows:
+        assert r["speedup"] == pytest.approx(r["fast_steps_per_s"] / r["highway_steps_per_s"])
+
+
+def test_validate_backend_small(tmp_path, capsys):
+    path = tmp_path / "val.json"
+    code = main(["validate-backend", "--scenarios", "intersection", "--episodes", "3", "--policies", "idle",
+                 "--json", str(path)])
+    rows = json.loads(path.read_text())
+    assert {r["statistic"] for r in rows} == {"crash_rate", "length", "speed", "lane_change_rate"}
+    assert code == (0 if all(r["ok"] for r in rows) else 1)
+    assert "intersection" in capsys.readouterr().out

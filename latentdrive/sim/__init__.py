@@ -3,6 +3,7 @@ is the :class:`~latentdrive.scene.Scene`; nothing downstream imports a simulator
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
@@ -11,9 +12,9 @@ from latentdrive.config import ConfigError
 from latentdrive.scenarios.spec import ScenarioSpec
 from latentdrive.scene import Scene
 
-__all__ = ["BACKENDS", "Backend", "make_backend"]
+__all__ = ["BACKENDS", "Backend", "BatchBackend", "SerialBatch", "make_backend", "make_batch"]
 
-BACKENDS = ("highway",)
+BACKENDS = ("highway", "fast")
 
 
 class Backend(Protocol):
@@ -30,10 +31,54 @@ class Backend(Protocol):
         ...
 
 
+class BatchBackend(Protocol):
+    """Several environments stepped together (what the vector env needs)."""
+
+    specs: list[ScenarioSpec]
+
+    def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> list[Scene]:
+        """Start episodes in ``env_ids`` (all by default) from ``seeds``; their initial Scenes."""
+        ...
+
+    def step(self, actions: Sequence[np.ndarray]) -> list[Scene]:
+        """One ``(n_av_i,)`` action array per environment; every environment's next Scene."""
+        ...
+
+
+class SerialBatch:
+    """A batch of single-environment backends stepped one after the other."""
+
+    def __init__(self, specs: Sequence[ScenarioSpec], backend: str) -> None:
+        self.specs = list(specs)
+        self.envs = [make_backend(spec, backend) for spec in self.specs]
+
+    def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> list[Scene]:
+        ids = range(len(self.envs)) if env_ids is None else env_ids
+        return [self.envs[i].reset(int(s)) for i, s in zip(ids, seeds, strict=True)]
+
+    def step(self, actions: Sequence[np.ndarray]) -> list[Scene]:
+        return [env.step(a) for env, a in zip(self.envs, actions, strict=True)]
+
+
 def make_backend(spec: ScenarioSpec, backend: str = "highway") -> Backend:
-    """A backend instance for ``spec`` (imported lazily: highway-env is heavy)."""
+    """A backend instance for ``spec`` (imported lazily: highway-env and numba are heavy)."""
     if backend == "highway":
         from latentdrive.sim.highway import HighwayBackend
 
         return HighwayBackend(spec)
+    if backend == "fast":
+        from latentdrive.sim.fast import FastBackend
+
+        return FastBackend(spec)
+    raise ConfigError(f"unknown backend {backend!r}: choose one of {', '.join(BACKENDS)}")
+
+
+def make_batch(specs: Sequence[ScenarioSpec], backend: str = "fast") -> BatchBackend:
+    """Many environments of a backend: the fast backend steps them in one call."""
+    if backend == "fast":
+        from latentdrive.sim.fast import FastBatch
+
+        return FastBatch(specs)
+    if backend in BACKENDS:
+        return SerialBatch(specs, backend)
     raise ConfigError(f"unknown backend {backend!r}: choose one of {', '.join(BACKENDS)}")

@@ -1,0 +1,136 @@
+"""Many environments behind gymnasium's vector-env interface, with auto-reset.
+
+``latentdrive.make_vec("merge", 64, backend="fast")`` steps 64 merges per call;
+``make_vec(["roundabout", "intersection", "merge", "exit"], 64)`` cycles the scenarios
+over the 64 environments (mixed-scenario batches, for mixed training). Environment ``i``
+reset with seed ``s + i`` behaves exactly like ``make_env(scenario_i).reset(seed=s + i)``
+followed by the same actions, whatever the batch size: seeds are per environment, and
+the backend's environments do not interact.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any, ClassVar
+
+import gymnasium as gym
+import numpy as np
+from gymnasium.vector import AutoresetMode
+from gymnasium.vector.utils import batch_space
+
+from latentdrive.actions import N_ACTIONS
+from latentdrive.config import ConfigError
+from latentdrive.env import Episode, make_env_config
+from latentdrive.scenarios import ScenarioSpec
+from latentdrive.sim import make_batch
+
+__all__ = ["DrivingVecEnv", "make_vec"]
+
+
+class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
+    """``num_envs`` driving environments stepped together.
+
+    Observations ``(num_envs, n_av, 4, T, H, W)``; actions ``(num_envs, n_av)``; rewards
+    ``(num_envs,)`` (each the mean over that environment's agents). Auto-reset happens in
+    the same step: when environment i ends, the returned observation is the first of its
+    next episode, and ``info["final_obs"][i]`` / ``info["final_info"][i]`` hold the last
+    one (masks ``_final_obs`` / ``_final_info``). ``info`` also holds, per environment,
+    ``agent_rewards``, ``crashed``, ``arrived`` ``(num_envs, n_av)``, ``episode_seed``,
+    ``scenario`` and ``scene`` (object arrays).
+
+    Args:
+        scenarios: one scenario (name or spec) per environment.
+        backend: ``"fast"`` (one compiled call per step) or ``"highway"``.
+        **overrides: as for :func:`latentdrive.env.make_env_config`, applied to every
+            environment.
+    """
+
+    metadata: ClassVar[dict[str, Any]] = {"autoreset_mode": AutoresetMode.SAME_STEP}  # type: ignore[misc]
+
+    def __init__(self, scenarios: Sequence[str | ScenarioSpec], backend: str = "fast", **overrides: Any) -> None:
+        if not scenarios:
+            raise ConfigError("make_vec needs at least one environment")
+        configs = [make_env_config(s, backend=backend, **overrides) for s in scenarios]
+        n_av = {c.scenario.n_av for c in configs}
+        obs_cfgs = {c.observation for c in configs}
+        if len(n_av) > 1 or len(obs_cfgs) > 1:
+            raise ConfigError("a vector env's scenarios must share n_av and the observation config "
+                              f"(got n_av {sorted(n_av)}); set them with overrides")
+        self.configs = configs
+        self.num_envs = len(configs)
+        self.n_av = configs[0].scenario.n_av
+        self.single_observation_space = gym.spaces.Box(0.0, 1.0, (self.n_av, *configs[0].observation.shape), np.float32)
+        self.single_action_space = gym.spaces.MultiDiscrete(np.full(self.n_av, N_ACTIONS, dtype=np.int64))
+        self.observation_space = batch_space(self.single_observation_space, self.num_envs)
+        self.action_space = batch_space(self.single_action_space, self.num_envs)
+        self._batch = make_batch([c.scenario for c in configs], backend)
+        self._episodes = [Episode(c) for c in configs]
+        self._rngs = [np.random.default_rng() for _ in configs]
+
+    def reset(self, *, seed: int | Sequence[int | None] | None = None,
+              options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+        """Start every environment; ``seed`` s gives environment i the seed s + i."""
+        if seed is None or isinstance(seed, int | np.integer):
+            seeds: list[int | None] = [None if seed is None else int(seed) + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} environments")
+        # Each environment owns the generator its episode seeds come from, seeded like
+        # DrivingEnv's np_random, so environment i matches a single env seeded s + i.
+        self._rngs = [np.random.default_rng(s) for s in seeds]
+        episode_seeds = [self._next_seed(i) for i in range(self.num_envs)]
+        scenes = self._batch.reset(episode_seeds)
+        results = [ep.start(sc, es) for ep, sc, es in zip(self._episodes, scenes, episode_seeds, strict=True)]
+        return np.stack([o for o, _ in results]), self._merge([info for _, info in results])
+
+    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
+        acts = np.asarray(actions)
+        if acts.shape[:1] != (self.num_envs,):
+            raise ValueError(f"actions must be ({self.num_envs}, {self.n_av}), got shape {acts.shape}")
+        checked = [ep.check_actions(a) for ep, a in zip(self._episodes, acts, strict=True)]
+        scenes = self._batch.step(checked)
+        obs, rewards, terms, truncs, infos = zip(*(ep.advance(sc) for ep, sc in zip(self._episodes, scenes, strict=True)), strict=True)
+        obs_list, info_list = list(obs), list(infos)
+        done = [i for i in range(self.num_envs) if terms[i] or truncs[i]]
+        final_obs = np.full(self.num_envs, None, dtype=object)
+        final_info = np.full(self.num_envs, None, dtype=object)
+        if done:
+            seeds = [self._next_seed(i) for i in done]
+            for i, scene, s in zip(done, self._batch.reset(seeds, env_ids=done), seeds, strict=True):
+                final_obs[i], final_info[i] = obs_list[i], info_list[i]
+                obs_list[i], info_list[i] = self._episodes[i].start(scene, s)
+                # The agents' rewards and flags of the step that ended the episode stay visible.
+                for key in ("agent_rewards", "crashed", "arrived"):
+                    info_list[i][key] = final_info[i][key]
+        info = self._merge(info_list)
+        mask = np.zeros(self.num_envs, dtype=bool)
+        mask[done] = True
+        info.update(final_obs=final_obs, _final_obs=mask, final_info=final_info, _final_info=mask.copy())
+        return (np.stack(obs_list), np.asarray(rewards, dtype=np.float64), np.asarray(terms, dtype=bool),
+                np.asarray(truncs, dtype=bool), info)
+
+    def _next_seed(self, i: int) -> int:
+        return int(self._rngs[i].integers(2**63 - 1))
+
+    def _merge(self, infos: list[dict[str, Any]]) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        for key in ("agent_rewards", "crashed", "arrived", "episode_seed"):
+            out[key] = np.stack([np.asarray(info[key]) for info in infos])
+        for key in ("scenario", "scene"):
+            out[key] = np.empty(self.num_envs, dtype=object)
+            out[key][:] = [info[key] for info in infos]
+        if "clean_observation" in infos[0]:
+            out["clean_observation"] = np.stack([info["clean_observation"] for info in infos])
+        return out
+
+
+def make_vec(scenario: str | ScenarioSpec | Sequence[str | ScenarioSpec], num_envs: int,
+             backend: str = "fast", **overrides: Any) -> DrivingVecEnv:
+    """``num_envs`` environments of one scenario, or of several cycled over the batch."""
+    if num_envs < 1:
+        raise ConfigError(f"num_envs must be at least 1, got {num_envs}")
+    names = [scenario] if isinstance(scenario, str | ScenarioSpec) else list(scenario)
+    if not names:
+        raise ConfigError("make_vec needs at least one scenario")
+    return DrivingVecEnv([names[i % len(names)] for i in range(num_envs)], backend=backend, **overrides)

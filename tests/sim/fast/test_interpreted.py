@@ -1,0 +1,33 @@
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from latentdrive.scenarios import get_spec
+from latentdrive.sim.fast import FastBatch
+
+_SCRIPT = """
+import json, numpy as np
+from latentdrive.scenarios import get_spec
+from latentdrive.sim.fast import FastBatch
+batch = FastBatch([get_spec("intersection"), get_spec("merge")])
+batch.reset([3, 4])
+for _ in range(2):
+    scenes = batch.step(np.array([[1, 3], [0, 1]]))
+print(json.dumps([s.position.tolist() for s in scenes]))
+"""
+
+
+def test_kernels_give_the_same_result_interpreted():
+    # Without numba the kernels run as plain Python; the results must not change.
+    env = {**os.environ, "NUMBA_DISABLE_JIT": "1"}
+    out = subprocess.run([sys.executable, "-c", _SCRIPT], env=env, capture_output=True, text=True, check=True)
+    interpreted = json.loads(out.stdout)
+    batch = FastBatch([get_spec("intersection"), get_spec("merge")])
+    batch.reset([3, 4])
+    for _ in range(2):
+        scenes = batch.step(np.array([[1, 3], [0, 1]]))
+    for got, ref in zip(interpreted, scenes, strict=True):
+        np.testing.assert_allclose(got, ref.position, atol=1e-9)
