@@ -38,5 +38,8 @@ def njit(func: F) -> F:
     """
     if not HAVE_NUMBA:  # pragma: no cover
         return func
-    return numba.njit(**_OPTIONS)(func)
+    try:
+        return numba.njit(**_OPTIONS)(func)
+    except (KeyError, TypeError):  # pragma: no cover - a numba without the private option
+        return numba.njit(cache=True, nogil=True)(func)
 
