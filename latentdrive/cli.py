@@ -88,7 +88,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                                                highway_steps=args.steps, velocity_maps=maps, obs_cfg=cfg, seed=args.seed))
             _say(f"  {name}: done")
         print(f"fast batch of {args.batch_size} vs highway-env, one core, same run; "
-              f"'maps': a VelocityMap per AV per step ({cfg.height}x{cfg.width}); agent observations/s = steps/s × AVs")
+              f"'maps': a VelocityMap per AV per step ({cfg.height}x{cfg.width}), agent observations/s = steps/s × AVs")
         print(format_throughput(rows))
         dicts = [r.as_dict() for r in rows]
     else:

@@ -245,6 +245,7 @@ class ThroughputRow:
 
     scenario: str
     vehicles: int
+    n_av: int
     batch_size: int
     velocity_maps: bool
     highway_steps_per_s: float
@@ -254,8 +255,14 @@ class ThroughputRow:
     def speedup(self) -> float:
         return self.fast_steps_per_s / self.highway_steps_per_s
 
+    @property
+    def fast_agent_obs_per_s(self) -> float:
+        """Agent observations (one per AV per env step) per second of the fast batch."""
+        return self.fast_steps_per_s * self.n_av
+
     def as_dict(self) -> dict[str, float | int | str | bool]:
-        return {**asdict(self), "speedup": self.speedup}
+        return {**asdict(self), "speedup": self.speedup, "fast_agent_obs_per_s": self.fast_agent_obs_per_s,
+                "highway_agent_obs_per_s": self.highway_steps_per_s * self.n_av}
 
 
 def _observe(scenes: list[Scene], cfg: ObservationConfig | None, rng: np.random.Generator) -> None:
@@ -314,7 +321,7 @@ def measure_throughput(
             batch.reset(list(range(next_seed, next_seed + len(done))), done)
             next_seed += len(done)
     fast = fast_steps * batch_size / (time.perf_counter() - t0)
-    return ThroughputRow(spec.name, spec.n_av + spec.n_hv, batch_size, velocity_maps, highway, fast)
+    return ThroughputRow(spec.name, spec.n_av + spec.n_hv, spec.n_av, batch_size, velocity_maps, highway, fast)
 
 
 def measure_scaling(
@@ -347,8 +354,11 @@ def measure_scaling(
 
 def format_throughput(rows: list[ThroughputRow]) -> str:
     """A plain-text table of the rows."""
-    lines = [f"{'scenario':<13}{'vehicles':>9}{'batch':>7}{'maps':>6}{'highway steps/s':>17}{'fast steps/s':>14}{'speed-up':>10}"]
+    lines = [f"{'scenario':<13}{'vehicles':>9}{'batch':>7}{'maps':>6}{'highway steps/s':>17}{'fast steps/s':>14}"
+             f"{'speed-up':>10}{'highway agent-obs/s':>21}{'fast agent-obs/s':>18}"]
     for r in rows:
+        obs = (f"{r.highway_steps_per_s * r.n_av:>21.1f}{r.fast_agent_obs_per_s:>18.0f}" if r.velocity_maps
+               else f"{'-':>21}{'-':>18}")
         lines.append(f"{r.scenario:<13}{r.vehicles:>9}{r.batch_size:>7}{'yes' if r.velocity_maps else 'no':>6}"
-                     f"{r.highway_steps_per_s:>17.1f}{r.fast_steps_per_s:>14.0f}{r.speedup:>9.0f}x")
+                     f"{r.highway_steps_per_s:>17.1f}{r.fast_steps_per_s:>14.0f}{r.speedup:>9.0f}x{obs}")
     return "\n".join(lines)
