@@ -41,5 +41,5 @@ def njit(func: F) -> F:
     try:
         return numba.njit(**_OPTIONS)(func)
     except (KeyError, TypeError):  # pragma: no cover - a numba without the private option
-        return numba.njit(cache=True, nogil=True)(func)
+        return numba.njit(cache=True, nogil=True)(func)  # type: ignore[return-value]
 
