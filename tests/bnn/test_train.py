@@ -20,6 +20,8 @@ from latentdrive.bnn.train import (
     reconstruction_loss,
     step_losses,
     train_bnn,
+    vehicle_cells_l2,
+    weighted_l2,
 )
 from latentdrive.config import ConfigError, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
@@ -103,14 +105,30 @@ def test_loss_targets_the_clean_pairs(data: dict[str, np.ndarray]) -> None:
     torch.testing.assert_close(total, recon_part + 0.5 * reg)
 
 
+def test_foreground_weight_weighs_nonzero_target_cells() -> None:
+    target = torch.tensor([0.0, 0.0, 0.0, 1.0])
+    recon = torch.tensor([0.5, 0.0, 0.0, 0.0])
+    # Plain MSE: (0.25 + 1) / 4; weighted 9 on the one foreground cell: (0.25 + 9) / 12.
+    assert float(weighted_l2(recon, target)) == pytest.approx(1.25 / 4)
+    assert float(weighted_l2(recon, target, 9.0)) == pytest.approx(9.25 / 12)
+
+
+def test_vehicle_cells_l2_reads_the_hv_av_pair_only() -> None:
+    target = torch.zeros(1, 3, 2, 1, 2, 2)
+    target[0, 0, 0, 0, 0, 0] = 1.0  # an HV cell
+    target[0, 1, 0, 0, 1, 1] = 1.0  # road: not a vehicle cell
+    total, count = vehicle_cells_l2(torch.zeros_like(target), target)
+    assert int(count) == 1 and float(total) == pytest.approx(1.0)
+
+
 def test_train_step_uses_step_losses(
     data: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     seen: list[tuple[torch.Tensor, float]] = []
 
-    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0):
+    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0, fg: float = 1.0):
         seen.append((batch.clean, lam))
-        return step_losses(model, batch, lam)
+        return step_losses(model, batch, lam, fg)
 
     monkeypatch.setattr(train_mod, "step_losses", spy)
     train_fn, _ = _fns(data, 32, 16, stratify_from=1)
