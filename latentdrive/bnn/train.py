@@ -116,8 +116,8 @@ class BNNTrainConfig(Config):
     )
     foreground_weight: float = Field(
         1.0, ge=1.0, le=1e4,
-        description="Weight, in the L2 loss, of cells where the clean target is non-zero "
-        "(vehicles, road); other cells weigh 1, and the loss is divided by the total weight. "
+        description="Weight, in the L2 loss, of vehicle cells (non-zero clean target in the HV, "
+        "AV and MV channels); other cells weigh 1, and the loss is divided by the total weight. "
         "1 is the paper's plain L2 (eq. 11). Vehicles cover a few cells of mostly empty "
         "maps, so plain L2 is nearly minimized by drawing no vehicle at all; a weight > 1 "
         "makes missing them costly.",
@@ -183,13 +183,20 @@ def resolve_device(spec: str) -> torch.device:
 # Losses
 
 
+# Which (pair, channel) of the (B, 3, 2, T, H, W) reconstruction shows vehicles: all but
+# the road layout (RL, pair RL+AV channel 0), which is dense and needs no up-weighting.
+_VEHICLE_CHANNELS = torch.tensor([[1.0, 1.0], [0.0, 1.0], [1.0, 1.0]]).view(1, 3, 2, 1, 1, 1)
+
+
 def weighted_l2(recon: Tensor, target: Tensor, foreground_weight: float = 1.0) -> Tensor:
-    """Squared error averaged with weight ``foreground_weight`` on cells where ``target > 0``
-    and 1 elsewhere (normalized by the total weight); plain MSE when the weight is 1."""
+    """Squared error of pair reconstructions ``(B, 3, 2, T, H, W)``, averaged with weight
+    ``foreground_weight`` on vehicle cells (non-zero target cells of the HV, AV and MV
+    channels) and 1 elsewhere, normalized by the total weight; plain MSE when it is 1."""
     err = (recon - target) ** 2
     if foreground_weight == 1.0:
         return torch.mean(err)
-    w = 1.0 + (foreground_weight - 1.0) * (target > 0).to(err.dtype)
+    vehicle = (target > 0).to(err.dtype) * _VEHICLE_CHANNELS.to(err.device, err.dtype)
+    w = 1.0 + (foreground_weight - 1.0) * vehicle
     return torch.sum(w * err) / torch.sum(w)
 
 

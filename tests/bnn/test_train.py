@@ -105,12 +105,16 @@ def test_loss_targets_the_clean_pairs(data: dict[str, np.ndarray]) -> None:
     torch.testing.assert_close(total, recon_part + 0.5 * reg)
 
 
-def test_foreground_weight_weighs_nonzero_target_cells() -> None:
-    target = torch.tensor([0.0, 0.0, 0.0, 1.0])
-    recon = torch.tensor([0.5, 0.0, 0.0, 0.0])
-    # Plain MSE: (0.25 + 1) / 4; weighted 9 on the one foreground cell: (0.25 + 9) / 12.
-    assert float(weighted_l2(recon, target)) == pytest.approx(1.25 / 4)
-    assert float(weighted_l2(recon, target, 9.0)) == pytest.approx(9.25 / 12)
+def test_foreground_weight_weighs_vehicle_cells_not_the_road() -> None:
+    target = torch.zeros(1, 3, 2, 1, 1, 2)
+    recon = torch.zeros_like(target)
+    target[0, 0, 0, 0, 0, 0] = 1.0  # an HV cell, missed
+    recon[0, 0, 0, 0, 0, 1] = 0.5   # a false HV cell
+    target[0, 1, 0, 0, 0, 0] = 1.0  # a road cell, missed: weighs 1 whatever the weight
+    # 12 cells: plain MSE (1 + 0.25 + 1) / 12; weight 9 on the one vehicle cell:
+    # (9 + 0.25 + 1) / (12 + 8).
+    assert float(weighted_l2(recon, target)) == pytest.approx(2.25 / 12)
+    assert float(weighted_l2(recon, target, 9.0)) == pytest.approx(10.25 / 20)
 
 
 def test_vehicle_cells_l2_reads_the_hv_av_pair_only() -> None:
