@@ -26,7 +26,7 @@ from highway_env.vehicle.controller import MDPVehicle
 
 from latentdrive.actions import META_ACTIONS
 from latentdrive.config import ObservationConfig
-from latentdrive.scenarios.spec import DriverParams, ScenarioError, ScenarioSpec, SpawnRegion
+from latentdrive.scenarios.spec import DriverParams, ScenarioError, ScenarioSpec
 from latentdrive.scene import Kind, RoadRaster, Scene, rasterize_strips
 
 __all__ = ["HighwayBackend", "ScenarioError"]
@@ -53,12 +53,6 @@ _DRIVER_ATTRS = {
     "lane_change_max_braking_imposed": "LANE_CHANGE_MAX_BRAKING_IMPOSED",
     "lane_change_delay": "LANE_CHANGE_DELAY",
 }
-
-
-# Minimum centre distance between any two vehicles at spawn, whatever their lanes, metres:
-# a car length plus a metre, so that footprints never overlap.
-_CLEARANCE = 6.0
-Placed = tuple[np.ndarray, tuple[str, str, int]]
 
 
 class _RoadHost:
@@ -107,12 +101,13 @@ def layout_raster(layout: str, lanes_count: int, resolution: float = 0.5) -> Roa
     return raster
 
 
-def _set_driver(vehicle: IDMVehicle, params: DriverParams, rng: np.random.Generator) -> None:
+def _set_driver(vehicle: IDMVehicle, params: DriverParams, delta: float, timer: float) -> None:
     for field, attr in _DRIVER_ATTRS.items():
         setattr(vehicle, attr, getattr(params, field))
-    vehicle.DELTA = float(rng.uniform(*params.delta_range))
-    # IDMVehicle seeds its lane-change timer from the class-level delay at construction.
-    vehicle.timer = float(np.sum(vehicle.position) * np.pi) % params.lane_change_delay
+    vehicle.DELTA = delta
+    # IDMVehicle seeds its lane-change timer from the class-level delay at construction;
+    # the placement computed it from the spec's delay instead.
+    vehicle.timer = timer
 
 
 def _check_regions(spec: ScenarioSpec, road: Road) -> None:
@@ -147,6 +142,11 @@ class HighwayBackend:
         self.spec = spec
         self.raster = layout_raster(spec.layout, spec.lanes_count)
         _check_regions(spec, build_road(spec.layout, spec.lanes_count, np.random.default_rng(0)))
+        # Imported here: the layout tables are built from this module's road builders.
+        from latentdrive.sim.fast.network import get_network
+        from latentdrive.sim.fast.placement import PlacementPlan
+
+        self._plan = PlacementPlan(spec, get_network(spec.layout, spec.lanes_count))
         self.road: Road | None = None
         self.avs: list[MDPVehicle] = []
         self._goal_nodes: list[frozenset[str]] = []
@@ -162,75 +162,34 @@ class HighwayBackend:
         # does not shift the other's randomness.
         road_rng = np.random.default_rng([seed, 1])
         self.road = build_road(self.spec.layout, self.spec.lanes_count, road_rng)
-        self.avs, self._goal_nodes = [], []
-        placed: list[Placed] = []
-        for i in range(self.spec.n_av):
-            region = self.spec.av_spawn[i % len(self.spec.av_spawn)]
-            self._place(region, rng, placed, av=True)
-        for i in range(self.spec.n_hv):
-            region = self.spec.hv_spawn[i % len(self.spec.hv_spawn)]
-            self._place(region, rng, placed, av=False)
+        # Where every vehicle starts: the same placement code as the fast backend, so both
+        # backends start from the same instant for the same seed.
+        p = self._plan.place(rng)
+        self.avs = []
+        self._goal_nodes = list(p.goal_nodes)
+        network = self.road.network
+        for i, lane_index in enumerate(p.lane_keys):
+            lane = network.get_lane(lane_index)
+            s = float(p.s[i])
+            pos, heading, speed = lane.position(s, 0.0), lane.heading_at(s), float(p.speed[i])
+            vehicle: Any
+            if p.is_av[i]:
+                vehicle = MDPVehicle(self.road, pos, heading=heading, speed=speed, target_lane_index=lane_index,
+                                     target_speeds=np.asarray(self.spec.av_target_speeds))
+                self.avs.append(vehicle)
+            else:
+                vehicle = IDMVehicle(self.road, pos, heading=heading, speed=speed, target_lane_index=lane_index)
+                _set_driver(vehicle, self.spec.driver, float(p.delta[i]), float(p.timer[i]))
+            # Vehicles start on the lane they were placed on, not on whichever lane is closest.
+            vehicle.lane_index = lane_index
+            vehicle.lane = lane
+            if p.destination[i]:
+                vehicle.plan_route_to(p.destination[i])
+            self.road.vehicles.append(vehicle)
         self.time = 0.0
         self._arrived = np.zeros(self.spec.n_av, dtype=bool)
         self._update_arrived()
         return self.scene()
-
-    def _place(self, region: SpawnRegion, rng: np.random.Generator, placed: list[Placed], av: bool) -> None:
-        assert self.road is not None
-        lanes_on_edge = self.road.network.graph[region.edge[0]][region.edge[1]]
-        for _attempt in range(64):
-            lane_id = int(rng.choice(region.lanes))
-            s = float(region.longitudinal.sample(rng)[0])
-            lane = lanes_on_edge[lane_id]
-            pos = lane.position(s, 0.0)
-            if self._is_free(pos, (*region.edge, lane_id), placed):
-                break
-        else:
-            lane_id, s = self._free_slot(region, lanes_on_edge, placed)
-            lane = lanes_on_edge[lane_id]
-            pos = lane.position(s, 0.0)
-        speed = float(region.speed.sample(rng)[0])
-        destination = str(rng.choice(region.destinations)) if region.destinations else None
-        lane_index = (region.edge[0], region.edge[1], lane_id)
-        if av:
-            vehicle: Any = MDPVehicle(
-                self.road, pos, heading=lane.heading_at(s), speed=speed,
-                target_lane_index=lane_index, target_speeds=np.asarray(self.spec.av_target_speeds),
-            )
-            self.avs.append(vehicle)
-            goal = {destination} if destination else set(self.spec.goal.nodes)
-            self._goal_nodes.append(frozenset(goal))
-        else:
-            vehicle = IDMVehicle(self.road, pos, heading=lane.heading_at(s), speed=speed, target_lane_index=lane_index)
-            _set_driver(vehicle, self.spec.driver, rng)
-        # Vehicles start on the lane they were placed on, not on whichever lane is closest.
-        vehicle.lane_index = lane_index
-        vehicle.lane = lane
-        if destination:
-            vehicle.plan_route_to(destination)
-        self.road.vehicles.append(vehicle)
-        placed.append((np.asarray(pos, dtype=float), lane_index))
-
-    def _is_free(self, pos: np.ndarray, lane_index: tuple[str, str, int], placed: list[Placed]) -> bool:
-        """Whether a vehicle at ``pos`` keeps ``min_gap`` from others on its lane and
-        ``_CLEARANCE`` from every other vehicle (lanes may be closer than ``min_gap``)."""
-        for p, idx in placed:
-            d = float(np.linalg.norm(pos - p))
-            if d < _CLEARANCE or (idx == lane_index and d < self.spec.min_gap):
-                return False
-        return True
-
-    def _free_slot(self, region: SpawnRegion, lanes: list[Any], placed: list[Placed]) -> tuple[int, float]:
-        """The first slot of the region's grid (lane, position) that is free."""
-        g = region.longitudinal
-        for s in np.arange(g.mean - g.clip, g.mean + g.clip + 1e-9, 1.0):
-            for lane_id in region.lanes:
-                if self._is_free(lanes[lane_id].position(s, 0.0), (*region.edge, lane_id), placed):
-                    return lane_id, float(s)
-        raise ScenarioError(
-            f"scenario {self.spec.name!r}: cannot place another vehicle on edge {region.edge} "
-            f"{self.spec.min_gap} m from the others; lower n_av/n_hv or min_gap"
-        )
 
     def step(self, actions: np.ndarray) -> Scene:
         """Apply one meta-action per AV, then simulate one policy period."""
