@@ -118,8 +118,10 @@ def distance_matrices(out: Path, report: dict[str, Any]) -> Path:
     panels = [("raw input (pooled)", report["raw_scenarios"], np.array(report["raw_distance"]))]
     panels += [(f"latent {n}", r["latent_scenarios"], np.array(r["latent_distance"])) for n, r in report["runs"].items()]
     fig, axes = plt.subplots(1, len(panels), figsize=(3.6 * len(panels), 3.6), squeeze=False)
+    # One colour scale for every panel, so that shades compare across spaces.
+    vmax = max(max(float(m.max()) for _, _, m in panels), 1e-9)
     for ax, (title, names, m) in zip(axes[0], panels, strict=True):
-        ax.imshow(m, cmap="Blues", vmin=0, vmax=max(float(m.max()), 1e-9))
+        ax.imshow(m, cmap="Blues", vmin=0, vmax=vmax)
         for (i, j), v in np.ndenumerate(m):
             ax.text(j, i, f"{v:.2f}", ha="center", va="center", fontsize=7)
         ax.set_xticks(range(len(names)), [n[:5] for n in names], fontsize=7, rotation=45)
