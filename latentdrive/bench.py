@@ -21,6 +21,7 @@ import numpy as np
 
 from latentdrive.config import ObservationConfig
 from latentdrive.observe import render_frame
+from latentdrive.reward import episode_end
 from latentdrive.scenarios import get_spec
 from latentdrive.sim.highway import HighwayBackend
 
@@ -59,6 +60,7 @@ def _bench_one(name: str, steps: int, seed: int, obs_cfg: ObservationConfig) -> 
     t_sim = t_obs = t_grid = 0.0
     agent_frames = 0
     n_vehicles = []
+    ep_steps = 0  # policy steps into the current episode
     for _ in range(steps):
         actions = rng.integers(0, 5, size=spec.n_av)
         t0 = time.perf_counter()
@@ -71,8 +73,9 @@ def _bench_one(name: str, steps: int, seed: int, obs_cfg: ObservationConfig) -> 
         t_sim, t_obs, t_grid = t_sim + t1 - t0, t_obs + t2 - t1, t_grid + t3 - t2
         agent_frames += scene.n_agents
         n_vehicles.append(scene.n_vehicles)
-        ag = scene.agents
-        if scene.crashed[ag].any() or scene.arrived[ag].all() or scene.time >= spec.duration:  # type: ignore[index]
+        ep_steps += 1
+        if any(episode_end(scene, ep_steps, spec)):
+            ep_steps = 0
             episode += 1
             scene = backend.reset(seed + episode)
             grid = backend.occupancy_grid(obs_cfg)

@@ -18,7 +18,7 @@ from pydantic import Field
 from latentdrive.actions import N_ACTIONS
 from latentdrive.config import Config, ConfigError, ObservationConfig, merge_overrides, validate
 from latentdrive.observe import FrameStack, render_frame
-from latentdrive.reward import agent_rewards
+from latentdrive.reward import agent_rewards, episode_end
 from latentdrive.scenarios import RewardConfig, ScenarioSpec, get_spec
 from latentdrive.scene import Scene
 from latentdrive.sim import make_backend
@@ -99,8 +99,7 @@ class Episode:
             before.crashed[prev], before.arrived[prev],  # type: ignore[index]
             self.spec.reward_speed_range, self.config.reward,
         )
-        terminated = bool(scene.crashed[ag].any() or scene.arrived[ag].all())  # type: ignore[index]
-        truncated = (not terminated) and self.steps >= self.spec.max_steps
+        terminated, truncated = episode_end(scene, self.steps, self.spec)
         self._stack.push(self._frame(scene, noisy=True))
         if self.config.clean_observation:
             self._clean_stack.push(self._frame(scene, noisy=False))

@@ -5,9 +5,23 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from latentdrive.scenarios.spec import RewardConfig
+from latentdrive.scenarios.spec import RewardConfig, ScenarioSpec
+from latentdrive.scene import Scene
 
-__all__ = ["agent_rewards"]
+__all__ = ["agent_rewards", "episode_end"]
+
+
+def episode_end(scene: Scene, steps: int, spec: ScenarioSpec) -> tuple[bool, bool]:
+    """``(terminated, truncated)`` of an episode at ``scene``, after ``steps`` policy steps.
+
+    Terminated when any AV has crashed or every AV has completed its mission; otherwise
+    truncated once ``steps`` reaches the scenario's ``max_steps``. Every consumer (env,
+    benchmarks, backend validation) ends episodes with this one rule.
+    """
+    ag = scene.agents
+    assert scene.arrived is not None
+    terminated = bool(scene.crashed[ag].any() or scene.arrived[ag].all())
+    return terminated, (not terminated) and steps >= spec.max_steps
 
 
 def agent_rewards(

@@ -28,3 +28,28 @@ def test_crashed_car_earns_no_speed_reward():
     r = agent_rewards(np.array([30.0]), np.array([True]), np.array([False]), np.array([True]),
                       np.array([False]), (20.0, 30.0), RewardConfig())
     assert r[0] == pytest.approx(0.0)
+
+
+def _scene(crashed, arrived):
+    from latentdrive.scene import RoadRaster, Scene
+
+    n = len(crashed) + 1  # one HV besides the agents
+    raster = RoadRaster(mask=np.ones((2, 2), np.uint8), origin=np.zeros(2), resolution=1.0)
+    return Scene(position=np.arange(2 * n, dtype=float).reshape(n, 2), heading=np.zeros(n), speed=np.zeros(n),
+                 frenet_speed=np.zeros(n), length=np.full(n, 5.0), width=np.full(n, 2.0),
+                 kind=np.array([1] * (n - 1) + [0], np.int8), mask=np.ones(n, bool),
+                 crashed=np.array([*crashed, True]), arrived=np.array([*arrived, False]),
+                 agents=np.arange(n - 1), road=raster)
+
+
+def test_episode_end_rule():
+    from latentdrive.reward import episode_end
+    from latentdrive.scenarios import get_spec
+
+    spec = get_spec("merge")  # 15 decisions
+    # A crashed HV does not end the episode; a crashed AV does; all AVs arrived does.
+    assert episode_end(_scene([False, False], [True, False]), 3, spec) == (False, False)
+    assert episode_end(_scene([True, False], [False, False]), 3, spec) == (True, False)
+    assert episode_end(_scene([False, False], [True, True]), 3, spec) == (True, False)
+    assert episode_end(_scene([False, False], [False, False]), spec.max_steps, spec) == (False, True)
+    assert episode_end(_scene([True, False], [False, False]), spec.max_steps, spec) == (True, False)

@@ -36,6 +36,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from latentdrive.config import ObservationConfig
+from latentdrive.reward import episode_end
 from latentdrive.scenarios import SCENARIOS, get_spec
 from latentdrive.scenarios.spec import ScenarioSpec
 from latentdrive.scene import Scene
@@ -83,8 +84,7 @@ def _lane_changes(before: list[tuple[str, str, int]], after: list[tuple[str, str
 
 
 def _done(scene: Scene, steps: int, spec: ScenarioSpec) -> bool:
-    ag = scene.agents
-    return bool(scene.crashed[ag].any() or scene.arrived[ag].all() or steps >= spec.max_steps)  # type: ignore[index]
+    return any(episode_end(scene, steps, spec))
 
 
 def _episode(spec: ScenarioSpec, scenes: list[Scene], changes: int) -> Episode:
