@@ -15,25 +15,23 @@ from latentdrive.bnn.distance import (
     median_bandwidth,
     mmd2,
 )
-from latentdrive.bnn.train import (
-    BNNTrainConfig,
-    evaluate_bnn,
-    load_trained_bottleneck,
-    reconstruction_loss,
-    step_losses,
-    train_bnn,
-)
+from latentdrive.bnn.evaluate import evaluate_bnn
+from latentdrive.bnn.losses import reconstruction_loss, step_losses
+from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
+from latentdrive.bnn.vehicles import VehicleCounts, label_blobs, vehicle_counts
 
 __all__ = [
     "BNNBatch",
     "BNNTrainConfig",
     "CheckpointError",
     "CheckpointInfo",
+    "VehicleCounts",
     "array_batches_fn",
     "distance_matrix",
     "evaluate_bnn",
     "group_mmd2",
     "iterate_batches",
+    "label_blobs",
     "latent_regularizer",
     "load_checkpoint",
     "load_trained_bottleneck",
@@ -45,4 +43,5 @@ __all__ = [
     "step_losses",
     "synthetic_dataset",
     "train_bnn",
+    "vehicle_counts",
 ]

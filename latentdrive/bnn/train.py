@@ -9,11 +9,9 @@ Two phases over one global epoch counter (paper section V-B):
    on batches that hold every scenario. With the default ``λ = 0`` the phase differs from
    pretraining only in its batches, which is the paper's regimen.
 
-Loss (paper eq. 11): the L2 error between the reconstructions of the *noisy* input and
-the three channel pairs of the *clean* observation, averaged over all elements
-``(B, 3, 2, T, H, W)`` rather than summed, so that its scale does not depend on batch or
-grid size (the sum is this mean times a constant; only the effective learning rate
-differs).
+The loss is :func:`latentdrive.bnn.losses.step_losses`: the L2 error (paper eq. 11)
+between the reconstructions of the *noisy* input and the three channel pairs of the
+*clean* observation. Validation is :func:`latentdrive.bnn.evaluate.evaluate_bnn`.
 
 Everything a run writes lives in ``run_dir``: ``config.json`` (resolved configs),
 ``metrics.csv`` (a row every ``log_every`` steps and one per epoch), ``tb/`` (TensorBoard)
@@ -39,7 +37,6 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from pydantic import Field, field_validator
-from torch import Tensor
 
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import (
@@ -49,7 +46,8 @@ from latentdrive.bnn.checkpoint import (
     read_checkpoint,
     save_checkpoint,
 )
-from latentdrive.bnn.distance import group_mmd2, latent_regularizer
+from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
+from latentdrive.bnn.losses import step_losses
 from latentdrive.config import Config, config_hash, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 
@@ -58,14 +56,9 @@ __all__ = [
     "CONFIG_NAME",
     "METRICS_NAME",
     "BNNTrainConfig",
-    "evaluate_bnn",
     "load_trained_bottleneck",
-    "reconstruction_loss",
     "resolve_device",
-    "step_losses",
     "train_bnn",
-    "vehicle_cells_l2",
-    "weighted_l2",
 ]
 
 CHECKPOINT_NAME = "checkpoint.safetensors"
@@ -82,7 +75,7 @@ _RESUMABLE_CHANGES = frozenset(
 
 _METRIC_COLUMNS = (
     "kind", "phase", "epoch", "step", "loss", "recon", "reg", "lr",
-    "val_loss", "val_vehicle_l2", "val_mmd", "samples_per_s", "peak_rss_mb", "peak_cuda_mb", "elapsed_s",
+    *VAL_KEYS, "samples_per_s", "peak_rss_mb", "peak_cuda_mb", "elapsed_s",
 )
 
 
@@ -180,125 +173,6 @@ def resolve_device(spec: str) -> torch.device:
 
 
 # ---------------------------------------------------------------------------------------
-# Losses
-
-
-# Which (pair, channel) of the (B, 3, 2, T, H, W) reconstruction shows vehicles: all but
-# the road layout (RL, pair RL+AV channel 0), which is dense and needs no up-weighting.
-_VEHICLE_CHANNELS = torch.tensor([[1.0, 1.0], [0.0, 1.0], [1.0, 1.0]]).view(1, 3, 2, 1, 1, 1)
-
-
-def weighted_l2(recon: Tensor, target: Tensor, foreground_weight: float = 1.0) -> Tensor:
-    """Squared error of pair reconstructions ``(B, 3, 2, T, H, W)``, averaged with weight
-    ``foreground_weight`` on vehicle cells (non-zero target cells of the HV, AV and MV
-    channels) and 1 elsewhere, normalized by the total weight; plain MSE when it is 1."""
-    err = (recon - target) ** 2
-    if foreground_weight == 1.0:
-        return torch.mean(err)
-    vehicle = (target > 0).to(err.dtype) * _VEHICLE_CHANNELS.to(err.device, err.dtype)
-    w = 1.0 + (foreground_weight - 1.0) * vehicle
-    return torch.sum(w * err) / torch.sum(w)
-
-
-def vehicle_cells_l2(recon: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
-    """Sum of squared errors and count over vehicle cells: the HV and AV channels of the
-    HV+AV pair (``[:, 0]`` of ``(B, 3, 2, T, H, W)``) where the clean target is non-zero."""
-    r, t = recon[:, 0], target[:, 0]
-    mask = t > 0
-    return torch.sum(((r - t) ** 2)[mask]), mask.sum()
-
-
-def step_losses(
-    model: BottleneckNetwork, batch: BNNBatch, lambda_distance: float = 0.0, foreground_weight: float = 1.0
-) -> tuple[Tensor, Tensor, Tensor]:
-    """The training objective of one batch: ``(total, recon, reg)`` scalar tensors.
-
-    ``recon`` is the (foreground-weighted, see :func:`weighted_l2`) squared error between
-    ``model(batch.noisy)``'s reconstruction ``(B, 3, 2, T, H, W)`` and
-    ``model.pairs(batch.clean)``: the denoising target is the clean observation. ``reg``
-    is :func:`latent_regularizer` of the latents ``(B, 3, d)`` grouped by
-    ``batch.scenario``, computed only when ``lambda_distance > 0`` (else 0).
-    ``total = recon + lambda_distance · reg``.
-    """
-    recon_x, latents = model(batch.noisy)
-    recon = weighted_l2(recon_x, model.pairs(batch.clean), foreground_weight)
-    if lambda_distance > 0.0:
-        reg = latent_regularizer(latents, batch.scenario)
-        return recon + lambda_distance * reg, recon, reg
-    zero = recon.new_zeros(())
-    return recon, recon, zero
-
-
-def reconstruction_loss(model: BottleneckNetwork, batch: BNNBatch) -> Tensor:
-    """Mean squared error between the reconstruction of ``batch.noisy`` and the clean pairs."""
-    return step_losses(model, batch, 0.0)[1]
-
-
-@torch.no_grad()
-def evaluate_bnn(
-    model: BottleneckNetwork,
-    batches: Iterable[BNNBatch],
-    device: torch.device,
-    *,
-    mmd_samples: int = 256,
-    rng: np.random.Generator | None = None,
-) -> dict[str, float]:
-    """Validation metrics: ``val_loss``, ``val_vehicle_l2`` and ``val_mmd``.
-
-    ``val_loss`` is the plain (unweighted) reconstruction MSE averaged over all samples,
-    comparable across runs whatever their training weights; ``val_vehicle_l2`` the MSE
-    over vehicle cells only (:func:`vehicle_cells_l2`), which tells whether the vehicles
-    survive the bottleneck. ``val_mmd`` is the
-    mean pairwise MMD² between the scenarios' latent distributions (latents flattened to
-    ``(3d,)``), each scenario subsampled to ``mmd_samples`` vectors with ``rng`` (all of
-    them, first ones first, when ``rng`` is None); NaN with fewer than two scenarios.
-    """
-    was_training = model.training
-    model.eval()
-    total, count = 0.0, 0
-    veh_sum, veh_count = 0.0, 0
-    lat: list[Tensor] = []
-    lab: list[Tensor] = []
-    for batch in batches:
-        b = batch.to(device)
-        recon_x, z = model(b.noisy)
-        target = model.pairs(b.clean)
-        loss = torch.mean((recon_x - target) ** 2)
-        v_sum, v_count = vehicle_cells_l2(recon_x, target)
-        veh_sum += float(v_sum)
-        veh_count += int(v_count)
-        n = b.noisy.shape[0]
-        total += float(loss) * n
-        count += n
-        lat.append(z.flatten(1).cpu())
-        lab.append(b.scenario.cpu())
-    model.train(was_training)
-    if count == 0:
-        raise ValueError("the validation batches are empty")
-    latents, labels = torch.cat(lat), torch.cat(lab)
-    keep: list[np.ndarray] = []
-    labels_np = labels.numpy()
-    for s in np.unique(labels_np):
-        idx = np.flatnonzero(labels_np == s)
-        if idx.shape[0] > mmd_samples:
-            if rng is None:
-                idx = idx[:mmd_samples]
-            else:
-                idx = np.sort(rng.choice(idx, mmd_samples, replace=False))
-        keep.append(idx)
-    sel = torch.from_numpy(np.concatenate(keep))
-    groups, d = group_mmd2(latents[sel].double(), labels[sel])
-    s_count = groups.shape[0]
-    if s_count < 2:
-        mmd = float("nan")
-    else:
-        iu = torch.triu_indices(s_count, s_count, offset=1)
-        mmd = float(d[iu[0], iu[1]].mean())
-    return {"val_loss": total / count, "val_vehicle_l2": veh_sum / veh_count if veh_count else float("nan"),
-            "val_mmd": mmd}
-
-
-# ---------------------------------------------------------------------------------------
 # Run bookkeeping
 
 
@@ -386,7 +260,7 @@ class _MetricsLog:
         self._csv.writerow({k: ("" if v is None else v) for k, v in row.items()})
         self._file.flush()
         prefix = "train" if row["kind"] == "step" else "epoch"
-        for key in ("loss", "recon", "reg", "val_loss", "val_vehicle_l2", "val_mmd", "samples_per_s"):
+        for key in ("loss", "recon", "reg", *VAL_KEYS, "samples_per_s"):
             v = row.get(key)
             if v is not None and v == v:  # skip NaN
                 self.tb.add_scalar(f"{prefix}/{key}", float(v), int(row["step"]))
@@ -447,7 +321,8 @@ def train_bnn(
     ``resume=False`` refuses (CheckpointError) a ``run_dir`` that already holds a checkpoint.
 
     Returned metrics: ``epoch`` (completed), ``step``, ``train_loss``, ``train_recon``,
-    ``train_reg``, ``val_loss``, ``val_mmd`` (NaN without validation), ``samples_per_s``,
+    ``train_reg``, the validation metrics of :data:`~latentdrive.bnn.evaluate.VAL_KEYS`
+    (NaN without validation), ``samples_per_s``,
     ``peak_rss_mb`` (and ``peak_cuda_mb`` on CUDA). A finished run resumed with the same
     schedule trains no further and returns the saved metrics.
     """
@@ -543,8 +418,7 @@ def train_bnn(
                 if ep.batches == 0:
                     raise ValueError(f"train_batches_fn({epoch}) yielded no batches")
 
-                val: dict[str, float] = {"val_loss": float("nan"), "val_vehicle_l2": float("nan"),
-                                         "val_mmd": float("nan")}
+                val: dict[str, float] = dict.fromkeys(VAL_KEYS, float("nan"))
                 if val_batches_fn is not None:
                     val = evaluate_bnn(
                         model, val_batches_fn(), device,
@@ -568,8 +442,8 @@ def train_bnn(
                     "kind": "epoch", "phase": phase, "epoch": epoch, "step": step,
                     "loss": last["train_loss"], "recon": last["train_recon"],
                     "reg": last["train_reg"],
-                    "lr": optimizer.param_groups[0]["lr"], "val_loss": val["val_loss"],
-                    "val_vehicle_l2": val["val_vehicle_l2"], "val_mmd": val["val_mmd"], "samples_per_s": last["samples_per_s"],
+                    "lr": optimizer.param_groups[0]["lr"], **val,
+                    "samples_per_s": last["samples_per_s"],
                     "peak_rss_mb": last["peak_rss_mb"], "peak_cuda_mb": last.get("peak_cuda_mb"),
                     "elapsed_s": elapsed,
                 })
@@ -589,7 +463,9 @@ def train_bnn(
                     f"epoch {epoch + 1}/{cfg.total_epochs} [{phase}] step {step} "
                     f"loss {last['train_loss']:.5f} (recon {last['train_recon']:.5f}, "
                     f"reg {last['train_reg']:.4f}) "
-                    f"val {val['val_loss']:.5f} (vehicles {val['val_vehicle_l2']:.4f}) mmd {val['val_mmd']:.4f} | "
+                    f"val {val['val_loss']:.5f} (vehicle cells {val['val_vehicle_l2']:.4f}, "
+                    f"recall {val['val_vehicle_recall']:.2f}, precision {val['val_vehicle_precision']:.2f}) "
+                    f"mmd {val['val_mmd']:.4f} | "
                     f"{last['samples_per_s']:.0f} samples/s | {elapsed:.1f} s | {mem}"
                 )
         finally:

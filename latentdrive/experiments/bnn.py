@@ -29,7 +29,8 @@ from pydantic import Field, field_validator
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import atomic_write_text
 from latentdrive.bnn.distance import distance_matrix
-from latentdrive.bnn.train import BNNTrainConfig, evaluate_bnn, load_trained_bottleneck, train_bnn
+from latentdrive.bnn.evaluate import evaluate_bnn
+from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
 from latentdrive.config import Config, ConfigError, load_yaml, merge_overrides, validate
 from latentdrive.data.collect import CollectConfig, collect
 from latentdrive.data.dataset import ShardDataset

@@ -14,15 +14,8 @@ import torch
 from latentdrive.bnn import train as train_mod
 from latentdrive.bnn.batch import BNNBatch, array_batches_fn, iterate_batches, synthetic_dataset
 from latentdrive.bnn.checkpoint import CheckpointError, read_checkpoint
-from latentdrive.bnn.train import (
-    BNNTrainConfig,
-    load_trained_bottleneck,
-    reconstruction_loss,
-    step_losses,
-    train_bnn,
-    vehicle_cells_l2,
-    weighted_l2,
-)
+from latentdrive.bnn.losses import reconstruction_loss, step_losses, vehicle_cells_l2, weighted_l2
+from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
 from latentdrive.config import ConfigError, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
 

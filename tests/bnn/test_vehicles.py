@@ -1,0 +1,91 @@
+"""Vehicle recovery scores on hand-drawn maps."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from latentdrive.bnn.vehicles import VehicleCounts, label_blobs, vehicle_counts
+
+
+def _maps() -> torch.Tensor:
+    """Two frames of 6 × 8: frame 0 holds a 3×1 car and an L-shaped pair touching only at
+    a corner (one blob under 8-connectivity); frame 1 a single 1×2 car."""
+    t = torch.zeros(2, 6, 8)
+    t[0, 1:4, 1] = 0.8  # vertical car, rows 1-3, column 1
+    t[0, 1, 5] = 0.6
+    t[0, 2, 6] = 0.6  # diagonal neighbour of (1, 5)
+    t[1, 4, 3:5] = 0.4
+    return t
+
+
+def test_label_blobs_finds_8_connected_blobs_per_frame() -> None:
+    labels = label_blobs(_maps() > 0)
+    assert labels[0, 0, 0] == 0
+    car = labels[0, 1:4, 1]
+    assert torch.all(car == car[0]) and car[0] > 0
+    assert labels[0, 1, 5] == labels[0, 2, 6] > 0
+    assert labels[0, 1, 5] != car[0]
+    assert torch.all(labels[1, 4, 3:5] == labels[1, 4, 3]) and labels[1, 4, 3] > 0
+    assert int(torch.unique(labels[labels > 0]).numel()) == 3
+
+
+def test_blobs_in_different_frames_never_merge() -> None:
+    mask = torch.zeros(2, 4, 4, dtype=torch.bool)
+    mask[:, 1, 1] = True  # same cell in both frames
+    labels = label_blobs(mask)
+    assert labels[0, 1, 1] != labels[1, 1, 1]
+
+
+def test_perfect_reconstruction_recovers_every_vehicle() -> None:
+    t = _maps()
+    c = vehicle_counts(t.clone(), t)
+    assert c == VehicleCounts(vehicles=3, recovered=3, bright_cells=7, bright_on_vehicles=7)
+    assert c.recall == 1.0 and c.precision == 1.0
+
+
+def test_empty_reconstruction_recovers_none() -> None:
+    c = vehicle_counts(torch.zeros(2, 6, 8), _maps())
+    assert c.vehicles == 3 and c.recovered == 0 and c.recall == 0.0
+    assert math.isnan(c.precision)
+
+
+def test_a_faded_car_counts_down_to_half_its_peak() -> None:
+    t = _maps()
+    r = t.clone()
+    r[0, 1:4, 1] = 0.4  # exactly half of 0.8: recovered
+    r[1, 4, 3:5] = 0.19  # just under half of 0.4: lost
+    c = vehicle_counts(r, t)
+    assert c.recovered == 2
+
+
+def test_a_car_drawn_elsewhere_is_lost_and_lowers_precision() -> None:
+    t = torch.zeros(1, 6, 8)
+    t[0, 1, 1:3] = 1.0
+    r = torch.zeros(1, 6, 8)
+    r[0, 4, 5:7] = 1.0  # same car, three rows down and four columns right
+    c = vehicle_counts(r, t)
+    assert c == VehicleCounts(vehicles=1, recovered=0, bright_cells=2, bright_on_vehicles=0)
+
+
+def test_painting_everything_bright_recalls_all_but_is_imprecise() -> None:
+    t = _maps()
+    c = vehicle_counts(torch.ones_like(t), t)
+    assert c.recall == 1.0
+    # Cells within one cell of a vehicle: 5×3 around the car, two overlapping 3×3 squares
+    # (9 + 9 - 4) around the corner pair, 3×4 around frame 1's car.
+    assert c.bright_cells == 96 and c.bright_on_vehicles == 15 + 14 + 12
+
+
+def test_counts_add_up_over_batches() -> None:
+    t = _maps()
+    whole = vehicle_counts(t * 0.7, t)
+    parts = vehicle_counts(t[:1] * 0.7, t[:1]).plus(vehicle_counts(t[1:] * 0.7, t[1:]))
+    assert whole == parts
+
+
+def test_shape_mismatch_is_refused() -> None:
+    with pytest.raises(ValueError, match="equal"):
+        vehicle_counts(torch.zeros(1, 4, 4), torch.zeros(1, 4, 5))
