@@ -12,7 +12,7 @@ import sys
 from collections.abc import Sequence
 from pathlib import Path
 
-from latentdrive.config import LatentDriveError, parse_override_args
+from latentdrive.config import ConfigError, LatentDriveError, parse_override_args
 from latentdrive.data.cli import add_collect_parser
 
 __all__ = ["main"]
@@ -133,12 +133,21 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
     overrides = parse_override_args(args.overrides)
     base = {"lambda_distance": args.lam, "seed": args.seed, "foreground_weight": args.foreground_weight}
     if args.epochs is not None:
-        base.update(pretrain_epochs=min(args.epochs, 10), mixed_epochs=max(args.epochs - 10, 0))
+        # --epochs is the total; pretraining keeps its own (overridable) length within it.
+        if "mixed_epochs" in overrides:
+            raise ConfigError("give --epochs or --set mixed_epochs=..., not both")
+        pretrain = overrides.get("pretrain_epochs", min(args.epochs, 10))
+        if isinstance(pretrain, int) and not 0 <= pretrain <= args.epochs:
+            raise ConfigError(f"--epochs {args.epochs} is shorter than pretrain_epochs={pretrain}")
+        if isinstance(pretrain, int):  # anything else is reported by validate() below
+            base.update(pretrain_epochs=pretrain, mixed_epochs=args.epochs - pretrain)
     cfg = validate(BNNTrainConfig, {**base, **overrides}, prefix="train.")
     metrics = train_on_dataset(args.dataset, args.run_dir, cfg, args.latent_dim, channels=tuple(args.channels),
                                val_fraction=args.val_fraction, resume=args.resume, progress=not args.quiet)
     print(f"done: held-out loss {metrics.get('val_loss', float('nan')):.6f} "
-          f"(vehicle cells {metrics.get('val_vehicle_l2', float('nan')):.4f}), "
+          f"(vehicle cells {metrics.get('val_vehicle_l2', float('nan')):.4f}, "
+          f"vehicle recall {metrics.get('val_vehicle_recall', float('nan')):.2f}, "
+          f"precision {metrics.get('val_vehicle_precision', float('nan')):.2f}), "
           f"{metrics.get('samples_per_s', float('nan')):.0f} samples/s, peak RSS {metrics.get('peak_rss_mb', float('nan')):.0f} MB")
     return 0
 
@@ -211,7 +220,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("run_dir", help="where checkpoints, metrics.csv, tb/ and config.json go")
     s.add_argument("--latent-dim", type=int, default=64, help="latent size d per channel pair (default 64)")
     s.add_argument("--lambda", dest="lam", type=float, default=0.0, help="weight of the scenario-distance regularizer (default 0)")
-    s.add_argument("--epochs", type=int, default=None, help="total epochs (first 10 pretraining); default: the config's 10 + 90")
+    s.add_argument("--epochs", type=int, default=None, help="total epochs, pretraining included (10 of them, or --set pretrain_epochs=N); "
+                   "default: the config's 10 + 90")
     s.add_argument("--foreground-weight", type=float, default=1.0,
                    help="L2 weight of non-empty target cells (default 1: the paper's plain L2)")
     s.add_argument("--channels", type=int, nargs="+", default=[16, 32, 32], help="encoder channel widths (default 16 32 32)")

@@ -87,6 +87,27 @@ def test_train_bnn_cli_on_the_study_dataset(tiny_study, tmp_path, capsys):
     assert main([*args, "--resume"]) == 0
 
 
+def test_train_bnn_epochs_is_the_total_whatever_the_pretraining(tiny_study, tmp_path):
+    # Regression: --epochs 3 with pretrain_epochs=1 used to run 1 + (3 - 10 → 0) epochs.
+    out, _, _ = tiny_study
+    run = tmp_path / "run"
+    args = ["train-bnn", str(out / "dataset"), str(run), "--latent-dim", "4", "--epochs", "3",
+            "--channels", "4", "-q", "--set", "batch_size=16", "--set", "pretrain_epochs=1"]
+    assert main(args) == 0
+    train = json.loads((run / "config.json").read_text())["train"]
+    assert (train["pretrain_epochs"], train["mixed_epochs"]) == (1, 2)
+
+
+@pytest.mark.parametrize("extra", [["--set", "pretrain_epochs=5"], ["--set", "mixed_epochs=2"]])
+def test_train_bnn_epochs_conflicts_are_refused(tiny_study, tmp_path, capsys, extra):
+    out, _, _ = tiny_study
+    args = ["train-bnn", str(out / "dataset"), str(tmp_path / "run"), "--epochs", "3", "-q", *extra]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "epochs" in err[0]
+    assert not (tmp_path / "run").exists()
+
+
 def test_train_bnn_cli_rejects_a_missing_dataset(tmp_path, capsys):
     assert main(["train-bnn", str(tmp_path / "nothing"), str(tmp_path / "run"), "-q"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
