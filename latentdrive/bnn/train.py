@@ -26,6 +26,7 @@ import contextlib
 import csv
 import io
 import json
+import math
 import os
 import resource
 import sys
@@ -97,7 +98,18 @@ class BNNTrainConfig(Config):
         description="Observations per batch, samples. The batch functions decide the batches; "
         "array_batches_fn takes this value.",
     )
-    lr: float = Field(1e-3, gt=0.0, le=1.0, description="AdamW learning rate, per step.")
+    lr: float = Field(1e-3, gt=0.0, le=1.0, description="AdamW (peak) learning rate, per step.")
+    lr_schedule: Literal["constant", "cosine"] = Field(
+        "constant",
+        description="'constant': lr throughout. 'cosine': lr in the first epoch, then down a "
+        "half cosine to lr_final_fraction·lr in the last one; set per epoch, from the epoch "
+        "number and the total, so a resumed run follows the same curve (unless the epoch "
+        "counts change on resumption).",
+    )
+    lr_final_fraction: float = Field(
+        0.05, ge=0.0, le=1.0,
+        description="The cosine schedule's last-epoch learning rate, as a fraction of lr.",
+    )
     weight_decay: float = Field(
         0.0, ge=0.0, le=1.0,
         description="AdamW decoupled weight decay, per step (multiplied by lr).",
@@ -159,6 +171,14 @@ class BNNTrainConfig(Config):
     def total_epochs(self) -> int:
         """Pretraining plus mixed epochs."""
         return self.pretrain_epochs + self.mixed_epochs
+
+    def epoch_lr(self, epoch: int) -> float:
+        """Learning rate of global epoch ``epoch`` (0-based) under :attr:`lr_schedule`."""
+        if self.lr_schedule == "constant" or self.total_epochs <= 1:
+            return self.lr
+        frac = min(epoch, self.total_epochs - 1) / (self.total_epochs - 1)
+        final = self.lr_final_fraction
+        return self.lr * (final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * frac)))
 
     def phase(self, epoch: int) -> Phase:
         """The phase of global epoch ``epoch`` (0-based)."""
@@ -381,6 +401,8 @@ def train_bnn(
             for epoch in range(start_epoch, cfg.total_epochs):
                 phase = cfg.phase(epoch)
                 lam = cfg.lambda_distance if phase == "mixed" else 0.0
+                for group in optimizer.param_groups:
+                    group["lr"] = cfg.epoch_lr(epoch)
                 model.train()
                 t_epoch = time.perf_counter()
                 ep, window = _Meter(), _Meter()

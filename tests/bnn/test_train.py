@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import itertools
 import json
 from collections.abc import Iterator
 from pathlib import Path
@@ -250,6 +251,25 @@ def test_train_config_validation() -> None:
         with pytest.raises(ConfigError, match=field):
             validate(BNNTrainConfig, data)
     assert train_mod.resolve_device("cpu") == torch.device("cpu")
+
+
+def test_cosine_schedule_runs_from_lr_down_to_its_final_fraction() -> None:
+    cfg = BNNTrainConfig(pretrain_epochs=1, mixed_epochs=4, lr=1e-3, lr_schedule="cosine",
+                         lr_final_fraction=0.1)
+    lrs = [cfg.epoch_lr(e) for e in range(5)]
+    assert lrs[0] == pytest.approx(1e-3) and lrs[-1] == pytest.approx(1e-4)
+    assert lrs[2] == pytest.approx(0.55e-3)  # halfway: the mean of the two ends
+    assert all(a > b for a, b in itertools.pairwise(lrs))
+    assert BNNTrainConfig(lr=2e-3).epoch_lr(7) == 2e-3
+
+
+def test_training_uses_the_scheduled_lr(data: dict[str, np.ndarray], tmp_path: Path) -> None:
+    train_fn, _val_fn = _fns(data, 32, 16, stratify_from=1)
+    cfg = _small_cfg(lr_schedule="cosine", lr_final_fraction=0.2, lambda_distance=0.0)
+    train_bnn(cfg, MODEL, train_fn, None, tmp_path / "run", progress=False)
+    logged = [float(r["lr"]) for r in _rows(tmp_path / "run") if r["kind"] == "epoch"]
+    assert logged == pytest.approx([cfg.epoch_lr(e) for e in range(3)])
+    assert logged[-1] == pytest.approx(0.2 * cfg.lr)
 
 
 def test_run_restores_torch_settings(data: dict[str, np.ndarray], tmp_path: Path) -> None:
