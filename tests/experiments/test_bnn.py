@@ -70,10 +70,11 @@ def test_raw_features_pool():
 def test_format_report_lists_every_run():
     report = {"dataset_samples": 10, "held_out_samples": 4, "raw_scenarios": ["a", "b"],
               "raw_distance": [[0, 1], [1, 0]], "raw_mean_between_scenario_distance": 1.0,
-              "runs": {"d4": {"latent_dim": 4, "lambda": 0.0, "val_recon": 0.5, "val_vehicle_l2": 0.25, "latent_scenarios": ["a", "b"],
+              "runs": {"d4": {"latent_dim": 4, "lambda": 0.0, "val_recon": 0.5, "val_vehicle_l2": 0.25,
+                              "vehicle_recall": 0.875, "vehicle_precision": 0.5, "latent_scenarios": ["a", "b"],
                               "latent_distance": [[0, 0.5], [0.5, 0]], "mean_between_scenario_distance": 0.5}}}
     text = format_report(report)
-    assert "| d4 | 4 | 0 | 0.500000 | 0.2500 | 0.5000 |" in text
+    assert "| d4 | 4 | 0 | 0.500000 | 0.2500 | 87.5% | 50.0% | 0.5000 |" in text
 
 
 def test_train_bnn_cli_on_the_study_dataset(tiny_study, tmp_path, capsys):
