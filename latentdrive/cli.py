@@ -131,6 +131,8 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
     from latentdrive.experiments.bnn import train_on_dataset
 
     overrides = parse_override_args(args.overrides)
+    model = {k.removeprefix("model."): v for k, v in overrides.items() if k.startswith("model.")}
+    overrides = {k.removeprefix("train."): v for k, v in overrides.items() if not k.startswith("model.")}
     base = {"lambda_distance": args.lam, "seed": args.seed, "foreground_weight": args.foreground_weight}
     if args.epochs is not None:
         # --epochs is the total; pretraining keeps its own (overridable) length within it.
@@ -143,7 +145,8 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
             base.update(pretrain_epochs=pretrain, mixed_epochs=args.epochs - pretrain)
     cfg = validate(BNNTrainConfig, {**base, **overrides}, prefix="train.")
     metrics = train_on_dataset(args.dataset, args.run_dir, cfg, args.latent_dim, channels=tuple(args.channels),
-                               val_fraction=args.val_fraction, resume=args.resume, progress=not args.quiet)
+                               val_fraction=args.val_fraction, resume=args.resume, progress=not args.quiet,
+                               model=model)
     print(f"done: held-out loss {metrics.get('val_loss', float('nan')):.6f} "
           f"(vehicle cells {metrics.get('val_vehicle_l2', float('nan')):.4f}, "
           f"vehicle recall {metrics.get('val_vehicle_recall', float('nan')):.2f}, "
@@ -229,7 +232,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR")
     s.add_argument("-q", "--quiet", action="store_true")
-    _add_set(s, "training override, repeatable (--set batch_size=32 --set lr=3e-4)")
+    _add_set(s, "training override, repeatable (--set batch_size=32 --set lr=3e-4); "
+                "model.KEY=VALUE sets an architecture field (--set model.latent_activation=tanh)")
     s.set_defaults(func=_cmd_train_bnn)
 
     s = sub.add_parser("bnn-study", help="dataset, BNNs of latent size 16/32/64 and λ>0, evaluation, figures")

@@ -101,8 +101,12 @@ def train_on_dataset(
     val_fraction: float = 0.15,
     resume: bool = False,
     progress: bool = True,
+    model: dict[str, Any] | None = None,
 ) -> dict[str, float]:
     """Train one BNN on a collected dataset, holding out ``val_fraction`` of its episodes.
+
+    ``model`` holds further :class:`BottleneckConfig` fields (``latent_activation``, ...);
+    the input shape comes from the dataset.
 
     Pretraining batches are plainly shuffled; mixed-phase batches hold every scenario.
     The split (by episode) depends only on ``train_cfg.seed`` and is saved to
@@ -111,7 +115,8 @@ def train_on_dataset(
     ds = ShardDataset(dataset_dir)
     train_ids, val_ids = _split(ds, val_fraction, train_cfg.seed)
     _, t, h, w = ds.sample_shape
-    model_cfg = BottleneckConfig(input_shape=(t, h, w), latent_dim=latent_dim, channels=channels)
+    model_cfg = validate(BottleneckConfig, {"latent_dim": latent_dim, "channels": channels, **(model or {}),
+                                            "input_shape": (t, h, w)}, prefix="model.")
     plain = ds.batches_fn(train_cfg.batch_size, train_ids, seed=train_cfg.seed, mixed=False)
     mixed = ds.batches_fn(train_cfg.batch_size, train_ids, seed=train_cfg.seed, mixed=True)
 

@@ -99,6 +99,20 @@ def test_train_bnn_epochs_is_the_total_whatever_the_pretraining(tiny_study, tmp_
     assert (train["pretrain_epochs"], train["mixed_epochs"]) == (1, 2)
 
 
+def test_train_bnn_model_overrides_reach_the_architecture(tiny_study, tmp_path, capsys):
+    out, _, _ = tiny_study
+    run = tmp_path / "run"
+    args = ["train-bnn", str(out / "dataset"), str(run), "--latent-dim", "4", "--epochs", "1", "--channels", "4",
+            "-q", "--set", "batch_size=16", "--set", "model.latent_activation=tanh", "--set", "model.spatial_kernel=5"]
+    assert main(args) == 0
+    model = json.loads((run / "config.json").read_text())["model"]
+    assert (model["latent_activation"], model["spatial_kernel"]) == ("tanh", 5)
+    bad = ["train-bnn", str(out / "dataset"), str(tmp_path / "bad"), "-q", "--set", "model.spatial_kernel=4"]
+    assert main(bad) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "model.spatial_kernel" in err[0]
+
+
 @pytest.mark.parametrize("extra", [["--set", "pretrain_epochs=5"], ["--set", "mixed_epochs=2"]])
 def test_train_bnn_epochs_conflicts_are_refused(tiny_study, tmp_path, capsys, extra):
     out, _, _ = tiny_study
