@@ -89,3 +89,14 @@ def test_counts_add_up_over_batches() -> None:
 def test_shape_mismatch_is_refused() -> None:
     with pytest.raises(ValueError, match="equal"):
         vehicle_counts(torch.zeros(1, 4, 4), torch.zeros(1, 4, 5))
+
+
+def test_a_car_one_cell_off_counts_within_the_tolerance_only() -> None:
+    t = torch.zeros(1, 6, 8)
+    t[0, 2, 2:4] = 0.8
+    r = torch.zeros(1, 6, 8)
+    r[0, 3, 3:5] = 0.8  # one row down, one column right
+    assert vehicle_counts(r, t, tolerance=1) == VehicleCounts(1, 1, 2, 2)
+    assert vehicle_counts(r, t, tolerance=0) == VehicleCounts(1, 0, 2, 1)
+    with pytest.raises(ValueError, match="tolerance"):
+        vehicle_counts(r, t, tolerance=-1)
