@@ -97,6 +97,6 @@ def test_a_car_one_cell_off_counts_within_the_tolerance_only() -> None:
     r = torch.zeros(1, 6, 8)
     r[0, 3, 3:5] = 0.8  # one row down, one column right
     assert vehicle_counts(r, t, tolerance=1) == VehicleCounts(1, 1, 2, 2)
-    assert vehicle_counts(r, t, tolerance=0) == VehicleCounts(1, 0, 2, 1)
+    assert vehicle_counts(r, t, tolerance=0) == VehicleCounts(1, 0, 2, 0)
     with pytest.raises(ValueError, match="tolerance"):
         vehicle_counts(r, t, tolerance=-1)
