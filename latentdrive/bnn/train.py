@@ -49,6 +49,7 @@ from latentdrive.bnn.checkpoint import (
 )
 from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
 from latentdrive.bnn.losses import step_losses
+from latentdrive.bnn.prefetch import prefetch
 from latentdrive.config import Config, config_hash, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 
@@ -71,7 +72,7 @@ Phase = Literal["pretrain", "mixed"]
 # Fields that may change between a run and its resumption: they extend the schedule or
 # change logging only, not the computation of the epochs already done.
 _RESUMABLE_CHANGES = frozenset(
-    {"pretrain_epochs", "mixed_epochs", "log_every", "device", "num_threads"}
+    {"pretrain_epochs", "mixed_epochs", "log_every", "device", "num_threads", "prefetch"}
 )
 
 _METRIC_COLUMNS = (
@@ -126,6 +127,11 @@ class BNNTrainConfig(Config):
         "1 is the paper's plain L2 (eq. 11). Vehicles cover a few cells of mostly empty "
         "maps, so plain L2 is nearly minimized by drawing no vehicle at all; a weight > 1 "
         "makes missing them costly.",
+    )
+    prefetch: int = Field(
+        2, ge=0, le=64,
+        description="Batches prepared ahead on a background thread while the model trains "
+        "(0: none). Does not change results.",
     )
     max_grad_norm: float = Field(
         0.0, ge=0.0,
@@ -407,7 +413,7 @@ def train_bnn(
                 t_epoch = time.perf_counter()
                 ep, window = _Meter(), _Meter()
                 t_prev = time.perf_counter()
-                for batch in train_batches_fn(epoch):
+                for batch in prefetch(train_batches_fn(epoch), cfg.prefetch):
                     b = batch.to(device)
                     total, recon, reg = step_losses(model, b, lam, cfg.foreground_weight)
                     if not torch.isfinite(total):
