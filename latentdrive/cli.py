@@ -227,7 +227,7 @@ def build_parser() -> argparse.ArgumentParser:
                    "default: the config's 10 + 90")
     s.add_argument("--foreground-weight", type=float, default=1.0,
                    help="L2 weight of non-empty target cells (default 1: the paper's plain L2)")
-    s.add_argument("--channels", type=int, nargs="+", default=[16, 32, 32], help="encoder channel widths (default 16 32 32)")
+    s.add_argument("--channels", type=int, nargs="+", default=[16, 32], help="encoder channel widths (default 16 32)")
     s.add_argument("--val-fraction", type=float, default=0.15, help="share of episodes held out (default 0.15)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR")

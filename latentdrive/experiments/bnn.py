@@ -57,7 +57,7 @@ class BNNStudyConfig(Config):
 
     collect: CollectConfig = Field(default_factory=lambda: CollectConfig.model_validate({}), description="The dataset.")
     train: BNNTrainConfig = Field(default_factory=lambda: BNNTrainConfig.model_validate({}), description="Training of every run (lambda_distance is set per run).")
-    channels: tuple[int, ...] = Field((16, 32, 32), min_length=1, max_length=6, description="Encoder channel widths of every run's BNN.")
+    channels: tuple[int, ...] = Field((16, 32), min_length=1, max_length=6, description="Encoder channel widths of every run's BNN.")
     latent_dims: list[int] = Field(default_factory=lambda: [16, 32, 64], min_length=1, description="Latent sizes d compared at λ = 0 (the paper's 16, 32, 64).")
     lambdas: list[float] = Field(default_factory=lambda: [0.01], description="λ > 0 values trained at the largest latent size.")
     val_fraction: float = Field(0.15, gt=0.0, lt=1.0, description="Share of each scenario's episodes held out for evaluation.")
@@ -97,7 +97,7 @@ def train_on_dataset(
     run_dir: str | Path,
     train_cfg: BNNTrainConfig,
     latent_dim: int,
-    channels: tuple[int, ...] = (16, 32, 32),
+    channels: tuple[int, ...] = (16, 32),
     val_fraction: float = 0.15,
     resume: bool = False,
     progress: bool = True,
