@@ -1,6 +1,7 @@
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import gymnasium as gym
 import numpy as np
@@ -13,7 +14,7 @@ from latentdrive.config import ConfigError
 from latentdrive.env import make_env, make_env_config
 from latentdrive.scenarios import SCENARIOS
 
-SMALL = {"observation": {"height": 16, "width": 32, "frames": 2}}
+SMALL: dict[str, Any] = {"observation": {"height": 16, "width": 32, "frames": 2}}
 
 
 @pytest.mark.parametrize("name", SCENARIOS)

@@ -1,3 +1,5 @@
+from typing import Any
+
 import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
@@ -7,7 +9,7 @@ from latentdrive.config import ConfigError
 from latentdrive.env import make_env
 from latentdrive.scenarios import SCENARIOS
 
-SMALL = {"observation": {"height": 16, "width": 32, "frames": 2}}
+SMALL: dict[str, Any] = {"observation": {"height": 16, "width": 32, "frames": 2}}
 
 
 def _run(vec, steps, seed=0):

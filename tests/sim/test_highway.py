@@ -59,6 +59,7 @@ def test_driver_parameters_live_on_instances():
         inter.reset(seed=0)
     finally:
         IDMVehicle.DISTANCE_WANTED = saved
+    assert merge.road is not None and inter.road is not None
     hv_merge = [v for v in merge.road.vehicles if v not in merge.avs]
     hv_inter = [v for v in inter.road.vehicles if v not in inter.avs]
     assert {v.DISTANCE_WANTED for v in hv_merge} == {get_spec("merge").driver.distance_wanted}
@@ -115,10 +116,11 @@ def test_arrival_is_flagged_on_the_goal_edge():
     scene = backend.reset(seed=0)
     for _ in range(spec.max_steps):
         scene = backend.step(np.array([3]))
+        assert scene.arrived is not None
         if scene.arrived[scene.agents].all():
             break
     av = backend.avs[0]
-    assert scene.arrived[scene.agents].all()
+    assert scene.arrived is not None and scene.arrived[scene.agents].all()
     assert av.lane_index[1] == "d" and av.position[0] >= 310.0 + 60.0
 
 

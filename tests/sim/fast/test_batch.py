@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from latentdrive.scenarios import SCENARIOS, get_spec
-from latentdrive.scene import Kind
+from latentdrive.scene import Kind, Scene
 from latentdrive.sim.fast import FastBackend, FastBatch
 from latentdrive.sim.highway import layout_raster
 
@@ -26,7 +26,7 @@ def test_env_is_the_same_alone_or_in_a_mixed_batch_of_64():
     batch = FastBatch(specs)
     batch.reset(seeds)
     scripts = [_script(s, spec.n_av, 6) for s, spec in zip(seeds, specs, strict=True)]
-    trajectories = [[] for _ in specs]
+    trajectories: list[list[Scene]] = [[] for _ in specs]
     for t in range(6):
         for k, scene in enumerate(batch.step([script[t] for script in scripts])):
             trajectories[k].append(scene)
@@ -71,10 +71,10 @@ def test_scene_layout_matches_the_spec():
 def test_actions_are_checked():
     batch = FastBatch([get_spec("merge"), get_spec("exit", n_av=3)])
     with pytest.raises(RuntimeError, match="reset"):
-        batch.step([np.ones(2), np.ones(3)])
+        batch.step([np.ones(2, np.int64), np.ones(3, np.int64)])
     batch.reset([0, 1])
     with pytest.raises(ValueError, match="needs 3 actions"):
-        batch.step([np.ones(2), np.ones(2)])
+        batch.step([np.ones(2, np.int64), np.ones(2, np.int64)])
     with pytest.raises(ValueError, match=r"\[0, 5\)"):
         batch.step(np.full((2, 3), 5))
     scenes = batch.step(np.array([[1, 1, 9], [1, 1, 1]]))  # entries past an env's AVs are ignored

@@ -75,6 +75,7 @@ def test_neighbours_on_a_straight_lane_as_highway_env_finds_them():
 
     hw = HighwayBackend(spec)
     hw.reset(0)
+    assert hw.road is not None
     for v, x, y in zip(hw.road.vehicles, xs, ys, strict=True):
         v.position = np.array([x, y])
     index = {id(v): k for k, v in enumerate(hw.road.vehicles)}

@@ -33,6 +33,7 @@ def test_reset_scene_equals_highway_backend(name):
     hw, fast = HighwayBackend(spec), FastBackend(spec)
     for seed in (0, 7, 123):
         assert fast.reset(seed) == hw.reset(seed)
+        assert hw.road is not None
         assert fast.lane_keys() == [v.lane_index for v in hw.road.vehicles]
 
 
