@@ -52,6 +52,7 @@ from latentdrive.bnn.losses import step_losses
 from latentdrive.bnn.prefetch import prefetch
 from latentdrive.config import Config, config_hash, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
+from latentdrive.runlock import dir_lock
 
 __all__ = [
     "CHECKPOINT_NAME",
@@ -353,7 +354,21 @@ def train_bnn(
     schedule trains no further and returns the saved metrics.
     """
     run = Path(run_dir)
-    run.mkdir(parents=True, exist_ok=True)
+    # One process per run directory: a second one would resume from, and overwrite, the
+    # first one's checkpoints.
+    with dir_lock(run, "train-bnn"):
+        return _train(cfg, model_cfg, train_batches_fn, val_batches_fn, run, resume, progress)
+
+
+def _train(
+    cfg: BNNTrainConfig,
+    model_cfg: BottleneckConfig,
+    train_batches_fn: Callable[[int], Iterable[BNNBatch]],
+    val_batches_fn: Callable[[], Iterable[BNNBatch]] | None,
+    run: Path,
+    resume: bool,
+    progress: bool,
+) -> dict[str, float]:
     ckpt = run / CHECKPOINT_NAME
     if ckpt.exists() and not resume:
         raise CheckpointError(

@@ -47,6 +47,7 @@ from latentdrive.data.shards import (
     write_shard,
 )
 from latentdrive.env import DrivingEnv, EnvConfig, make_env_config
+from latentdrive.runlock import LOCK_NAME, dir_lock
 from latentdrive.scenarios import SCENARIOS
 
 __all__ = [
@@ -313,7 +314,7 @@ def _open_dataset_dir(root: Path, fresh: dict[str, Any], say: Callable[[str], No
     if root.exists() and not root.is_dir():
         raise DatasetError(f"{root}: exists and is not a directory")
     if not (root / MANIFEST).exists():
-        if root.exists() and any(not is_temp_file(p) for p in root.iterdir()):
+        if root.exists() and any(not is_temp_file(p) and p.name != LOCK_NAME for p in root.iterdir()):
             raise DatasetError(f"{root}: directory is not empty and holds no {MANIFEST}; collect into an empty or new directory")
         root.mkdir(parents=True, exist_ok=True)
         manifest = fresh
@@ -365,30 +366,32 @@ def collect(cfg: CollectConfig, out_dir: str | Path, progress: bool = True) -> C
     env_cfgs = resolve_env_configs(cfg)
     units = plan_units(cfg, env_cfgs)
     chash = dataset_hash(cfg)
-    manifest = _open_dataset_dir(root, _new_manifest(cfg, chash, env_cfgs, units), say)
-    todo = [u for u in units if u.name not in manifest["shards"]]
-    skipped = len(units) - len(todo)
-    if skipped:
-        say(f"{root}: {skipped} of {len(units)} shards already collected")
-    jobs = [_Job(cfg, env_cfgs[u.scenario], u, root, chash) for u in todo]
-    t0 = time.perf_counter()
-    written = 0
-    for k, res in enumerate(_execute(jobs, cfg.workers), start=1):
-        manifest["shards"][res.name] = {
-            "samples": res.samples, "sha256": res.sha256, "bytes": res.bytes,
-            "content_sha256": res.content_sha256, "episode_samples": res.episode_samples,
-            "episode_policies": res.episode_policies,
-        }
-        write_manifest(root, manifest)
-        written += res.samples
-        wall = time.perf_counter() - t0
-        say(f"[{skipped + k}/{len(units)}] {res.name}: {res.samples} samples, {res.bytes / 2**20:.1f} MiB, "
-            f"{res.samples / max(res.seconds, 1e-9):.0f} samples/s in its worker, "
-            f"{written / max(wall, 1e-9):.0f} samples/s overall")
-    total = sum(int(e["samples"]) for e in manifest["shards"].values())
-    summary = CollectSummary(root, len(units), len(todo), skipped, written, total, time.perf_counter() - t0)
-    say(f"{root}: {total} samples in {len(units)} shards ({written} new in {summary.seconds:.1f} s)")
-    return summary
+    # Held until the manifest's last update: a second collect into `root` is refused.
+    with dir_lock(root, "collect"):
+        manifest = _open_dataset_dir(root, _new_manifest(cfg, chash, env_cfgs, units), say)
+        todo = [u for u in units if u.name not in manifest["shards"]]
+        skipped = len(units) - len(todo)
+        if skipped:
+            say(f"{root}: {skipped} of {len(units)} shards already collected")
+        jobs = [_Job(cfg, env_cfgs[u.scenario], u, root, chash) for u in todo]
+        t0 = time.perf_counter()
+        written = 0
+        for k, res in enumerate(_execute(jobs, cfg.workers), start=1):
+            manifest["shards"][res.name] = {
+                "samples": res.samples, "sha256": res.sha256, "bytes": res.bytes,
+                "content_sha256": res.content_sha256, "episode_samples": res.episode_samples,
+                "episode_policies": res.episode_policies,
+            }
+            write_manifest(root, manifest)
+            written += res.samples
+            wall = time.perf_counter() - t0
+            say(f"[{skipped + k}/{len(units)}] {res.name}: {res.samples} samples, {res.bytes / 2**20:.1f} MiB, "
+                f"{res.samples / max(res.seconds, 1e-9):.0f} samples/s in its worker, "
+                f"{written / max(wall, 1e-9):.0f} samples/s overall")
+        total = sum(int(e["samples"]) for e in manifest["shards"].values())
+        summary = CollectSummary(root, len(units), len(todo), skipped, written, total, time.perf_counter() - t0)
+        say(f"{root}: {total} samples in {len(units)} shards ({written} new in {summary.seconds:.1f} s)")
+        return summary
 
 
 def _execute(jobs: list[_Job], workers: int) -> Iterator[_UnitResult]:

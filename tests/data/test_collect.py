@@ -27,6 +27,7 @@ from latentdrive.data.shards import (
     quantize,
 )
 from latentdrive.env import DrivingEnv
+from latentdrive.runlock import DirectoryInUse, dir_lock
 
 from .conftest import tiny_config
 
@@ -224,3 +225,13 @@ def test_cli_collects_and_refuses_another_config(collected: Path, tmp_path: Path
     args = _parser().parse_args(["collect", str(tmp_path / "x"), "--scenarios", "nowhere"])
     with pytest.raises(ConfigError, match="scenarios"):
         args.func(args)
+
+
+def test_a_second_collect_into_a_directory_in_use_is_refused(tmp_path: Path) -> None:
+    out = tmp_path / "ds"
+    with dir_lock(out, "collect"):
+        with pytest.raises(DirectoryInUse, match="collect"):
+            collect(tiny_config(), out, progress=False)
+    assert not (out / MANIFEST).exists()
+    # The lock file alone does not make the directory "not empty".
+    assert collect(tiny_config(), out, progress=False).shards_written > 0
