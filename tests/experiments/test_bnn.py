@@ -31,7 +31,12 @@ def test_tiny_study_writes_report_and_figures(tiny_study):
         assert m.shape == (3, 3) and np.allclose(m, m.T) and np.allclose(np.diag(m), 0)
         assert run["val_recon"] > 0
     assert json.loads((out / "report.json").read_text()) == report
-    assert "held-out L2" in (out / "report.md").read_text()
+    text = (out / "report.md").read_text()
+    assert "held-out L2" in text and "| noisy input (reference) |" in text
+    ref = report["noisy_input_vehicles"]
+    assert ref["vehicles"] > 0 and 0.0 < ref["vehicle_recall"] <= 1.0
+    for run in report["runs"].values():
+        assert run["vehicle_recall"] is None or 0.0 <= run["vehicle_recall"] <= 1.0
     for fig in ("bnn_loss", "bnn_reconstruction", "bnn_latents", "bnn_distance"):
         assert (out / "figures" / f"{fig}.png").read_bytes()[:4] == b"\x89PNG"
 
