@@ -48,7 +48,7 @@ from latentdrive.bnn.checkpoint import (
     save_checkpoint,
 )
 from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
-from latentdrive.bnn.losses import step_losses
+from latentdrive.bnn.losses import LossKind, step_losses
 from latentdrive.bnn.prefetch import prefetch
 from latentdrive.config import Config, config_hash, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
@@ -120,6 +120,12 @@ class BNNTrainConfig(Config):
         0.0, ge=0.0, le=1e6,
         description="λ: weight of the latent scenario-distance regularizer (mean pairwise MMD², "
         "dimensionless) in the mixed phase. 0 trains on reconstruction only.",
+    )
+    loss: LossKind = Field(
+        "l2",
+        description="Per-cell reconstruction error: 'l2' (the paper's eq. 11) or 'bce' "
+        "(binary cross-entropy of the [0, 1] cell values; see "
+        "latentdrive.bnn.losses.reconstruction_error). Validation always reports the MSE.",
     )
     foreground_weight: float = Field(
         1.0, ge=1.0, le=1e4,
@@ -430,7 +436,7 @@ def _train(
                 t_prev = time.perf_counter()
                 for batch in prefetch(train_batches_fn(epoch), cfg.prefetch):
                     b = batch.to(device)
-                    total, recon, reg = step_losses(model, b, lam, cfg.foreground_weight)
+                    total, recon, reg = step_losses(model, b, lam, cfg.foreground_weight, cfg.loss)
                     if not torch.isfinite(total):
                         raise FloatingPointError(
                             f"non-finite loss {float(total)} at step {step} (epoch {epoch})"

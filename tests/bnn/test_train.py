@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import itertools
 import json
+import math
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -15,7 +16,13 @@ import torch
 from latentdrive.bnn import train as train_mod
 from latentdrive.bnn.batch import BNNBatch, array_batches_fn, iterate_batches, synthetic_dataset
 from latentdrive.bnn.checkpoint import CheckpointError, read_checkpoint
-from latentdrive.bnn.losses import reconstruction_loss, step_losses, vehicle_cells_l2, weighted_l2
+from latentdrive.bnn.losses import (
+    reconstruction_error,
+    reconstruction_loss,
+    step_losses,
+    vehicle_cells_l2,
+    weighted_l2,
+)
 from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
 from latentdrive.config import ConfigError, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
@@ -109,6 +116,37 @@ def test_foreground_weight_weighs_vehicle_cells_not_the_road() -> None:
     # (9 + 0.25 + 1) / (12 + 8).
     assert float(weighted_l2(recon, target)) == pytest.approx(2.25 / 12)
     assert float(weighted_l2(recon, target, 9.0)) == pytest.approx(10.25 / 20)
+
+
+def test_bce_is_the_weighted_cross_entropy_of_the_cells() -> None:
+    target = torch.zeros(1, 3, 2, 1, 1, 2)
+    target[0, 0, 0, 0, 0, 0] = 0.8  # an HV cell
+    recon = torch.full_like(target, 0.1)
+    recon[0, 0, 0, 0, 0, 0] = 0.6
+    # The HV cell: -(0.8 ln 0.6 + 0.2 ln 0.4); each of the 11 empty cells: -ln 0.9.
+    hv = -(0.8 * math.log(0.6) + 0.2 * math.log(0.4))
+    empty = -math.log(0.9)
+    assert float(reconstruction_error(recon, target, 1.0, "bce")) == pytest.approx((hv + 11 * empty) / 12)
+    assert float(reconstruction_error(recon, target, 5.0, "bce")) == pytest.approx((5 * hv + 11 * empty) / 16)
+    assert float(reconstruction_error(recon, target, 5.0, "l2")) == float(weighted_l2(recon, target, 5.0))
+    # Saturated outputs stay finite (log(0) is bounded).
+    assert torch.isfinite(reconstruction_error(torch.zeros_like(target), target, 1.0, "bce"))
+    with pytest.raises(ValueError, match="loss"):
+        reconstruction_error(recon, target, 1.0, "l1")  # type: ignore[arg-type]
+
+
+def test_bce_pushes_a_missing_vehicle_harder_than_l2() -> None:
+    # The reason the option exists: at a near-empty output the L2 gradient through the
+    # sigmoid is damped by r(1 - r); the cross-entropy's is not.
+    target = torch.zeros(1, 3, 2, 1, 1, 1)
+    target[0, 0, 0] = 0.8
+    grads = {}
+    for kind in ("l2", "bce"):
+        logit = torch.full_like(target, math.log(0.05 / 0.95), requires_grad=True)
+        reconstruction_error(torch.sigmoid(logit), target, 1.0, kind).backward()
+        assert logit.grad is not None
+        grads[kind] = float(logit.grad[0, 0, 0].abs().sum())
+    assert grads["bce"] > 5 * grads["l2"]
 
 
 def test_vehicle_cells_l2_reads_the_hv_av_pair_only() -> None:
