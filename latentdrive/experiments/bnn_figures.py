@@ -41,20 +41,30 @@ def _epoch_rows(run_dir: Path) -> list[dict[str, str]]:
         return [r for r in csv.DictReader(f) if r["kind"] == "epoch"]
 
 
-def loss_curves(out: Path, run_names: list[str]) -> Path:
-    """Training and held-out reconstruction loss per epoch, one line pair per run."""
-    fig, ax = plt.subplots(figsize=(7, 4))
+def loss_curves(out: Path, run_names: list[str], input_recall: float | None = None) -> Path:
+    """Per epoch and run: training and held-out reconstruction loss (left), and the share of
+    held-out vehicles recovered (right; ``input_recall``, the noisy input's own, as a line)."""
+    fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(12, 4))
     for i, name in enumerate(run_names):
         rows = _epoch_rows(out / "runs" / name)
         epochs = [int(r["epoch"]) + 1 for r in rows]
         color = f"C{i}"
         ax.plot(epochs, [float(r["recon"]) for r in rows], color=color, label=f"{name} train")
         ax.plot(epochs, [float(r["val_loss"]) for r in rows], color=color, linestyle="--", label=f"{name} held-out")
+        recall = [float(r.get("val_vehicle_recall") or "nan") for r in rows]
+        ax_r.plot(epochs, recall, color=color, label=name)
     ax.set_xlabel("epoch")
-    ax.set_ylabel("L2 reconstruction loss (mean per element)")
+    ax.set_ylabel("reconstruction loss (train: as trained; held-out: plain MSE)")
     ax.set_yscale("log")
     ax.legend(fontsize=7, ncol=2)
     ax.set_title("BNN training (dashed: held-out episodes)")
+    if input_recall is not None:
+        ax_r.axhline(input_recall, color="grey", linestyle=":", label="noisy input (reference)")
+    ax_r.set_xlabel("epoch")
+    ax_r.set_ylabel("held-out vehicles recovered")
+    ax_r.set_ylim(0, 1)
+    ax_r.legend(fontsize=7)
+    ax_r.set_title("Vehicles recovered: half their peak value within one cell")
     return _save(fig, out / "figures" / "bnn_loss.png")
 
 
@@ -63,10 +73,12 @@ def _channels_of(recon: np.ndarray) -> np.ndarray:
     return np.stack([recon[0, 0, -1], recon[0, 1, -1], recon[1, 0, -1], recon[2, 0, -1]])
 
 
-def reconstructions(out: Path, data: HeldOut, run_names: list[str]) -> Path:
-    """Ground truth, noisy input and each run's reconstruction for a roundabout and an intersection."""
+def reconstructions(out: Path, data: HeldOut, run_names: list[str], notes: dict[str, str] | None = None) -> Path:
+    """Ground truth, noisy input and each run's reconstruction for a roundabout and an
+    intersection; ``notes`` adds a line under a row's name (e.g. its vehicle recall)."""
     shown = [s for s in SHOWN if data.first(s) >= 0] or [data.names[int(data.scenario[0])]]
-    rows = ["ground truth", "noisy input", *run_names]
+    notes = notes or {}
+    rows = ["ground truth", *(f"{n}\n{notes[n]}" if n in notes else n for n in ["noisy input", *run_names])]
     fig, axes = plt.subplots(len(rows), 4 * len(shown), figsize=(3.2 * 4 * len(shown), 1.9 * len(rows)), squeeze=False)
     models = {name: load_trained_bottleneck(out / "runs" / name) for name in run_names}
     for k, scen in enumerate(shown):
@@ -132,6 +144,17 @@ def distance_matrices(out: Path, report: dict[str, Any]) -> Path:
     return _save(fig, out / "figures" / "bnn_distance.png")
 
 
+def _recall_notes(report: dict[str, Any]) -> dict[str, str]:
+    """Row notes "NN% of vehicles" from the report's held-out vehicle recall, where known."""
+    notes: dict[str, str] = {}
+    entries = {"noisy input": report.get("noisy_input_vehicles") or {}, **report["runs"]}
+    for name, entry in entries.items():
+        recall = entry.get("vehicle_recall")
+        if recall is not None:
+            notes[name] = f"{recall:.0%} of vehicles"
+    return notes
+
+
 def write_bnn_figures(out: str | Path, cfg: BNNStudyConfig, data: HeldOut, report: dict[str, Any]) -> list[Path]:
     """Every figure of the study, into ``out/figures``."""
     out = Path(out)
@@ -139,8 +162,8 @@ def write_bnn_figures(out: str | Path, cfg: BNNStudyConfig, data: HeldOut, repor
     plain = [n for n in names if report["runs"][n]["lambda"] == 0]
     largest = max(plain, key=lambda n: report["runs"][n]["latent_dim"])
     return [
-        loss_curves(out, names),
-        reconstructions(out, data, plain),
+        loss_curves(out, names, (report.get("noisy_input_vehicles") or {}).get("vehicle_recall")),
+        reconstructions(out, data, plain, _recall_notes(report)),
         latents_before_after(out, cfg, data, largest),
         distance_matrices(out, report),
     ]
