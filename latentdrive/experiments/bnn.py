@@ -218,16 +218,32 @@ def _fmt(v: float | None, spec: str) -> str:
     return "–" if v is None or not math.isfinite(v) else format(v, spec)
 
 
-def input_vehicle_recovery(ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, float | None]:
-    """The noisy input scored as if it were a reconstruction of the clean target: the
-    reference for the runs' vehicle recall and precision (:mod:`latentdrive.bnn.vehicles`)."""
-    counts = VehicleCounts(0, 0, 0, 0)
+@torch.no_grad()
+def vehicle_recovery(ds: ShardDataset, val_ids: np.ndarray, batch_size: int,
+                     model: BottleneckNetwork | None = None) -> dict[str, Any]:
+    """Vehicle recall and precision (:mod:`latentdrive.bnn.vehicles`) of ``model``'s
+    reconstructions over the held-out episodes, overall and per scenario.
+
+    With ``model=None`` the noisy input itself is scored as the reconstruction of the clean
+    target: the reference for the runs. Returns ``vehicle_recall``, ``vehicle_precision``,
+    ``vehicles`` and ``by_scenario`` (name → recall); undefined values are None.
+    """
+    names = list(ds.scenario_names)
+    per = [VehicleCounts(0, 0, 0, 0) for _ in names]
     for b in ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False):
-        noisy, clean = channel_pairs(b.noisy)[:, 0], channel_pairs(b.clean)[:, 0]
-        h, w = clean.shape[-2:]
-        counts = counts.plus(vehicle_counts(noisy.reshape(-1, h, w), clean.reshape(-1, h, w)))
-    return {"vehicle_recall": _finite_or_none(counts.recall),
-            "vehicle_precision": _finite_or_none(counts.precision), "vehicles": counts.vehicles}
+        recon = channel_pairs(b.noisy)[:, 0] if model is None else model(b.noisy)[0][:, 0]
+        clean = channel_pairs(b.clean)[:, 0]
+        for s in torch.unique(b.scenario).tolist():
+            keep = b.scenario == s
+            r, t = recon[keep], clean[keep]
+            h, w = t.shape[-2:]
+            per[s] = per[s].plus(vehicle_counts(r.reshape(-1, h, w), t.reshape(-1, h, w)))
+    total = VehicleCounts(0, 0, 0, 0)
+    for counts in per:
+        total = total.plus(counts)
+    return {"vehicle_recall": _finite_or_none(total.recall),
+            "vehicle_precision": _finite_or_none(total.precision), "vehicles": total.vehicles,
+            "by_scenario": {n: _finite_or_none(c.recall) for n, c in zip(names, per, strict=True) if c.vehicles}}
 
 
 def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
@@ -236,10 +252,11 @@ def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.nda
     metrics = evaluate_bnn(model, ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False),
                            torch.device("cpu"), mmd_samples=2)
     names, lat = distance_matrix(data.by_scenario(encode(model, data.noisy)))
+    vehicles = vehicle_recovery(ds, val_ids, batch_size, model)
     return {"val_recon": metrics["val_loss"], "val_vehicle_l2": metrics["val_vehicle_l2"],
             # None, not NaN, when undefined (no vehicles, nothing drawn): JSON has no NaN.
-            "vehicle_recall": _finite_or_none(metrics["val_vehicle_recall"]),
-            "vehicle_precision": _finite_or_none(metrics["val_vehicle_precision"]),
+            "vehicle_recall": vehicles["vehicle_recall"], "vehicle_precision": vehicles["vehicle_precision"],
+            "vehicle_recall_by_scenario": vehicles["by_scenario"],
             "latent_scenarios": names, "latent_distance": lat.tolist(),
             "mean_between_scenario_distance": _mean_offdiag(lat)}
 
@@ -268,7 +285,7 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
     report: dict[str, Any] = {
         "dataset_samples": len(ds), "held_out_samples": len(data.scenario),
         "raw_scenarios": names, "raw_distance": raw.tolist(), "raw_mean_between_scenario_distance": _mean_offdiag(raw),
-        "noisy_input_vehicles": input_vehicle_recovery(ds, val_ids, cfg.train.batch_size),
+        "noisy_input_vehicles": vehicle_recovery(ds, val_ids, cfg.train.batch_size),
         "runs": {},
     }
     for name, d, lam in runs:
@@ -307,6 +324,22 @@ def _matrix_md(names: list[str], m: list[list[float]]) -> str:
     return "\n".join(lines)
 
 
+def _recall_table(report: dict[str, Any]) -> list[str]:
+    """Vehicles recovered per scenario and run (Markdown), when the report has them."""
+    rows = {n: r.get("vehicle_recall_by_scenario") for n, r in report["runs"].items()}
+    ref = (report.get("noisy_input_vehicles") or {}).get("by_scenario")
+    if ref:
+        rows = {"noisy input (reference)": ref, **rows}
+    rows = {n: r for n, r in rows.items() if r}
+    if not rows:
+        return []
+    scen = list(next(iter(rows.values())))
+    lines = ["", "## Held-out vehicles recovered, per scenario", "",
+             "| run | " + " | ".join(scen) + " |", "|---" * (len(scen) + 1) + "|"]
+    lines += [f"| {n} | " + " | ".join(_fmt(r.get(s), ".1%") for s in scen) + " |" for n, r in rows.items()]
+    return lines
+
+
 def format_report(report: dict[str, Any]) -> str:
     """The study's findings as Markdown tables."""
     runs = report["runs"]
@@ -330,6 +363,7 @@ def format_report(report: dict[str, Any]) -> str:
     if ref is not None:
         lines += [f"| noisy input (reference) | – | – | – | – | {_fmt(ref['vehicle_recall'], '.1%')} "
                   f"| {_fmt(ref['vehicle_precision'], '.1%')} | – |"]
+    lines += _recall_table(report)
     lines += ["", "A vehicle (a blob of cells in a clean HV or AV frame) is *recovered* when the "
               "reconstruction reaches half its peak value on it or within one cell of it; *precision* is "
               "the share of reconstructed cells ≥ 0.25 within one cell of a real vehicle "

@@ -35,8 +35,11 @@ def test_tiny_study_writes_report_and_figures(tiny_study):
     assert "held-out L2" in text and "| noisy input (reference) |" in text
     ref = report["noisy_input_vehicles"]
     assert ref["vehicles"] > 0 and 0.0 < ref["vehicle_recall"] <= 1.0
+    assert set(ref["by_scenario"]) <= {"roundabout", "intersection", "merge"} and ref["by_scenario"]
     for run in report["runs"].values():
         assert run["vehicle_recall"] is None or 0.0 <= run["vehicle_recall"] <= 1.0
+        assert set(run["vehicle_recall_by_scenario"]) == set(ref["by_scenario"])
+    assert "## Held-out vehicles recovered, per scenario" in text
     for fig in ("bnn_loss", "bnn_reconstruction", "bnn_latents", "bnn_distance"):
         assert (out / "figures" / f"{fig}.png").read_bytes()[:4] == b"\x89PNG"
 
