@@ -4,14 +4,18 @@
 processes doing that at once would each redo the other's work and overwrite its files.
 :func:`dir_lock` holds an advisory ``flock`` on ``DIR/.latentdrive.lock`` for the duration
 of a run. The operating system drops it when the process ends however it ends, so a
-killed run never leaves a stale lock behind. Where ``fcntl`` is missing (Windows) runs
-are not locked.
+killed run never leaves a stale lock behind. The lock is re-entrant within a process
+(a study that trains into a directory it already holds does not block itself). Where
+``fcntl`` is missing (Windows) or the filesystem refuses ``flock``, runs go unlocked.
 """
 
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
+import sys
+import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -27,6 +31,11 @@ __all__ = ["LOCK_NAME", "DirectoryInUse", "dir_lock"]
 #: The lock file's name; dataset and run directories ignore it.
 LOCK_NAME = ".latentdrive.lock"
 
+# Directories this process holds, with their nesting depth. Process-wide on purpose: flock
+# conflicts between two opens of one file even within a process.
+_held: dict[Path, int] = {}
+_held_guard = threading.Lock()
+
 
 class DirectoryInUse(LatentDriveError):
     """Another process holds the directory's lock."""
@@ -36,14 +45,29 @@ class DirectoryInUse(LatentDriveError):
 def dir_lock(directory: str | Path, what: str) -> Iterator[None]:
     """Hold ``directory``'s lock (creating the directory) while the block runs.
 
-    ``what`` names the kind of run for the error message (``"collect"``, ``"train-bnn"``).
-    Raises :class:`DirectoryInUse`, naming the directory and the holder's pid, when
-    another process holds it.
+    ``what`` names the kind of run (``"collect"``, ``"train-bnn"``); it is recorded in the
+    lock file with the pid, for the error another process gets. Raises
+    :class:`DirectoryInUse`, naming the directory and the holder, when another process
+    holds it.
     """
     d = Path(directory)
     if d.exists() and not d.is_dir():
         raise LatentDriveError(f"{d}: exists and is not a directory")
     d.mkdir(parents=True, exist_ok=True)
+    key = d.resolve()
+    with _held_guard:
+        if key in _held:
+            _held[key] += 1
+            reentered = True
+        else:
+            reentered = False
+    if reentered:
+        try:
+            yield
+        finally:
+            with _held_guard:
+                _held[key] -= 1
+        return
     if fcntl is None:  # pragma: no cover
         yield
         return
@@ -52,16 +76,25 @@ def dir_lock(directory: str | Path, what: str) -> Iterator[None]:
             fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
             f.seek(0)
-            holder = f.read().strip() or "unknown pid"
+            holder = f.read().strip() or "another run"
             raise DirectoryInUse(
-                f"{d}: in use by another {what} run ({holder}); wait for it to finish or use "
-                "another directory"
+                f"{d}: in use by {holder}; wait for it to finish or use another directory"
             ) from None
+        except OSError as exc:
+            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+                raise
+            print(f"latentdrive: {d}: cannot lock ({exc.strerror}); running unlocked", file=sys.stderr)
+            yield
+            return
         f.seek(0)
         f.truncate()
-        f.write(f"pid {os.getpid()}\n")
+        f.write(f"{what} (pid {os.getpid()})\n")
         f.flush()
+        with _held_guard:
+            _held[key] = 1
         try:
             yield
         finally:
+            with _held_guard:
+                del _held[key]
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)

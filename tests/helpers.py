@@ -1,8 +1,14 @@
-"""Shared test helpers: small rollouts with fixed action scripts."""
+"""Shared test helpers: small rollouts with fixed action scripts; a directory lock held elsewhere."""
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
+import subprocess
+import sys
+import textwrap
+from collections.abc import Iterator
+from pathlib import Path
 
 import numpy as np
 
@@ -25,3 +31,24 @@ def rollout_digest(scenario: str, seed: int = 0, steps: int = 6, **overrides: ob
         if terminated or truncated:
             break
     return h.hexdigest()
+
+
+@contextlib.contextmanager
+def held_by_another_process(directory: Path, what: str = "collect") -> Iterator[subprocess.Popen[str]]:
+    """Hold ``directory``'s run lock from a child process while the block runs."""
+    holder = subprocess.Popen(
+        [sys.executable, "-c", textwrap.dedent(f"""
+            import time
+            from latentdrive.runlock import dir_lock
+            with dir_lock({str(directory)!r}, {what!r}):
+                print("held", flush=True)
+                time.sleep(120)
+        """)],
+        stdout=subprocess.PIPE, text=True,
+    )
+    try:
+        assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+        yield holder
+    finally:
+        holder.kill()
+        holder.wait()

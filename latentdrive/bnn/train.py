@@ -310,20 +310,34 @@ def _saved_configs(run_dir: Path) -> dict[str, Any] | None:
     return read_checkpoint(p)[1]["config"]
 
 
+def _changed_fields(saved: Any, cfg: Config, ignore: frozenset[str] = frozenset()) -> list[str]:
+    """Fields of ``cfg`` whose value differs from the saved JSON dump ``saved``, as
+    ``name (saved → now)``. A field missing from ``saved`` (a checkpoint written before the
+    field existed) counts as its default, which is what that run used."""
+    old = saved if isinstance(saved, dict) else {}
+    new = cfg.model_dump(mode="json")
+    defaults = type(cfg)().model_dump(mode="json")
+    return [
+        f"{k} ({old.get(k, defaults[k])} → {new[k]})"
+        for k in sorted(new)
+        if k not in ignore and old.get(k, defaults[k]) != new[k]
+    ]
+
+
 def _check_resumable(
     ckpt: Path, saved: dict[str, Any], cfg: BNNTrainConfig, model_cfg: BottleneckConfig
 ) -> None:
-    if saved.get("model_hash") != config_hash(model_cfg):
+    changed = _changed_fields(saved.get("model"), model_cfg)
+    if changed:
         raise CheckpointError(
-            f"{ckpt}: checkpoint was made with another model config; use a new run_dir"
+            f"{ckpt}: checkpoint was made with another model config ({', '.join(changed)}); "
+            "pass the saved values or use a new run_dir"
         )
-    old = saved.get("train", {})
-    new = cfg.model_dump(mode="json")
-    changed = sorted(k for k in new if k not in _RESUMABLE_CHANGES and old.get(k) != new[k])
+    changed = _changed_fields(saved.get("train"), cfg, _RESUMABLE_CHANGES)
     if changed:
         raise CheckpointError(
             f"{ckpt}: checkpoint was made with other training settings ({', '.join(changed)}); "
-            "use a new run_dir"
+            "pass the saved values or use a new run_dir"
         )
 
 

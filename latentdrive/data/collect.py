@@ -366,6 +366,8 @@ def collect(cfg: CollectConfig, out_dir: str | Path, progress: bool = True) -> C
     env_cfgs = resolve_env_configs(cfg)
     units = plan_units(cfg, env_cfgs)
     chash = dataset_hash(cfg)
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"{root}: exists and is not a directory")
     # Held until the manifest's last update: a second collect into `root` is refused.
     with dir_lock(root, "collect"):
         manifest = _open_dataset_dir(root, _new_manifest(cfg, chash, env_cfgs, units), say)

@@ -37,6 +37,7 @@ from latentdrive.config import Config, ConfigError, load_yaml, merge_overrides, 
 from latentdrive.data.collect import CollectConfig, collect
 from latentdrive.data.dataset import ShardDataset
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
+from latentdrive.runlock import dir_lock
 
 __all__ = [
     "BNNStudyConfig",
@@ -128,11 +129,12 @@ def train_on_dataset(
         return ds.batches(train_cfg.batch_size, val_ids, seed=train_cfg.seed, epoch=0, mixed=False)
 
     run = Path(run_dir)
-    run.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(run / "split.json", json.dumps({
-        "dataset": str(Path(dataset_dir).resolve()), "val_fraction": val_fraction,
-        "train_episodes": train_ids.tolist(), "val_episodes": val_ids.tolist()}) + "\n")
-    return train_bnn(train_cfg, model_cfg, train_fn, val_fn, run, resume=resume, progress=progress)
+    # Held from the split record on, so a refused second run writes nothing here.
+    with dir_lock(run, "train-bnn"):
+        atomic_write_text(run / "split.json", json.dumps({
+            "dataset": str(Path(dataset_dir).resolve()), "val_fraction": val_fraction,
+            "train_episodes": train_ids.tolist(), "val_episodes": val_ids.tolist()}) + "\n")
+        return train_bnn(train_cfg, model_cfg, train_fn, val_fn, run, resume=resume, progress=progress)
 
 
 @dataclass

@@ -265,12 +265,27 @@ def test_run_dir_guards(data: dict[str, np.ndarray], tmp_path: Path) -> None:
     train_bnn(cfg, MODEL, train_fn, None, run, progress=False)
     with pytest.raises(CheckpointError, match="resume=True"):
         train_bnn(cfg, MODEL, train_fn, None, run, progress=False)
-    with pytest.raises(CheckpointError, match="model config") as exc:
+    with pytest.raises(CheckpointError, match=r"model config \(latent_dim \(16 → 32\)\)") as exc:
         train_bnn(cfg, MODEL.replace(latent_dim=32), train_fn, None, run, resume=True,
                   progress=False)
     assert str(exc.value).startswith(str(run / "checkpoint.safetensors"))
-    with pytest.raises(CheckpointError, match=r"\(lr\)"):
+    with pytest.raises(CheckpointError, match=r"\(lr \(0.003 → 0.0001\)\)"):
         train_bnn(cfg.replace(lr=1e-4), MODEL, train_fn, None, run, resume=True, progress=False)
+
+
+def test_a_checkpoint_from_before_a_field_existed_resumes(data: dict[str, np.ndarray], tmp_path: Path) -> None:
+    # Regression: a checkpoint whose saved config lacks a field added later (here the LR
+    # schedule and the loss) ran with that field's default and must stay resumable.
+    train_fn, _ = _fns(data, 32, 16, stratify_from=1)
+    run = tmp_path / "run"
+    cfg = _small_cfg(mixed_epochs=0)
+    train_bnn(cfg, MODEL, train_fn, None, run, progress=False)
+    saved = read_checkpoint(run / "checkpoint.safetensors")[1]["config"]
+    for key in ("lr_schedule", "lr_final_fraction", "loss"):
+        del saved["train"][key]
+    train_mod._check_resumable(run / "checkpoint.safetensors", saved, cfg, MODEL)
+    with pytest.raises(CheckpointError, match="lr_schedule"):
+        train_mod._check_resumable(run / "checkpoint.safetensors", saved, cfg.replace(lr_schedule="cosine"), MODEL)
     with pytest.raises(ValueError, match="no batches"):
         train_bnn(cfg, MODEL, lambda epoch: [], None, tmp_path / "empty", progress=False)
 

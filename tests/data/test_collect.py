@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from helpers import held_by_another_process
 
 from latentdrive.config import ConfigError, LatentDriveError
 from latentdrive.data.cli import add_collect_parser
@@ -27,7 +28,7 @@ from latentdrive.data.shards import (
     quantize,
 )
 from latentdrive.env import DrivingEnv
-from latentdrive.runlock import DirectoryInUse, dir_lock
+from latentdrive.runlock import DirectoryInUse
 
 from .conftest import tiny_config
 
@@ -229,7 +230,7 @@ def test_cli_collects_and_refuses_another_config(collected: Path, tmp_path: Path
 
 def test_a_second_collect_into_a_directory_in_use_is_refused(tmp_path: Path) -> None:
     out = tmp_path / "ds"
-    with dir_lock(out, "collect"):
+    with held_by_another_process(out, "collect"):
         with pytest.raises(DirectoryInUse, match="collect"):
             collect(tiny_config(), out, progress=False)
     assert not (out / MANIFEST).exists()

@@ -2,6 +2,7 @@ import json
 
 import numpy as np
 import pytest
+from helpers import held_by_another_process
 
 from latentdrive.cli import main
 from latentdrive.config import ConfigError
@@ -129,6 +130,16 @@ def test_train_bnn_epochs_conflicts_are_refused(tiny_study, tmp_path, capsys, ex
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "epochs" in err[0]
     assert not (tmp_path / "run").exists()
+
+
+def test_train_bnn_into_a_run_directory_in_use_writes_nothing(tiny_study, tmp_path, capsys):
+    out, _, _ = tiny_study
+    run = tmp_path / "run"
+    with held_by_another_process(run, "train-bnn"):
+        assert main(["train-bnn", str(out / "dataset"), str(run), "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(run) in err[0] and "in use" in err[0]
+    assert [p.name for p in run.iterdir()] == [".latentdrive.lock"]
 
 
 def test_train_bnn_cli_rejects_a_missing_dataset(tmp_path, capsys):
