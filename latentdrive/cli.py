@@ -133,16 +133,24 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
     overrides = parse_override_args(args.overrides)
     model = {k.removeprefix("model."): v for k, v in overrides.items() if k.startswith("model.")}
     overrides = {k.removeprefix("train."): v for k, v in overrides.items() if not k.startswith("model.")}
+    own = {"latent_dim": "--latent-dim", "channels": "--channels", "input_shape": "the dataset's sample shape"}
+    clash = sorted(set(model) & set(own))
+    if clash:
+        raise ConfigError(f"model.{clash[0]} is set by {own[clash[0]]}, not --set")
     base = {"lambda_distance": args.lam, "seed": args.seed, "foreground_weight": args.foreground_weight}
     if args.epochs is not None:
         # --epochs is the total; pretraining keeps its own (overridable) length within it.
+        if args.epochs < 1:
+            raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
         if "mixed_epochs" in overrides:
             raise ConfigError("give --epochs or --set mixed_epochs=..., not both")
         pretrain = overrides.get("pretrain_epochs", min(args.epochs, 10))
-        if isinstance(pretrain, int) and not 0 <= pretrain <= args.epochs:
-            raise ConfigError(f"--epochs {args.epochs} is shorter than pretrain_epochs={pretrain}")
-        if isinstance(pretrain, int):  # anything else is reported by validate() below
-            base.update(pretrain_epochs=pretrain, mixed_epochs=args.epochs - pretrain)
+        # Anything but a plain integer is left to validate() below, which names the field.
+        if isinstance(pretrain, int) and not isinstance(pretrain, bool):
+            if pretrain > args.epochs:
+                raise ConfigError(f"--epochs {args.epochs} is shorter than pretrain_epochs={pretrain}")
+            if pretrain >= 0:
+                base.update(pretrain_epochs=pretrain, mixed_epochs=args.epochs - pretrain)
     cfg = validate(BNNTrainConfig, {**base, **overrides}, prefix="train.")
     metrics = train_on_dataset(args.dataset, args.run_dir, cfg, args.latent_dim, channels=tuple(args.channels),
                                val_fraction=args.val_fraction, resume=args.resume, progress=not args.quiet,

@@ -1,8 +1,9 @@
-"""The BNN's training objective: the denoising L2 (paper eq. 11), optionally with vehicle
-cells weighted up, plus the λ-weighted scenario-distance regularizer.
+"""The BNN's training objective: the denoising reconstruction error (the paper's L2, eq. 11,
+or a binary cross-entropy), optionally with vehicle cells weighted up, plus the λ-weighted
+scenario-distance regularizer.
 
 Reconstructions and targets are channel pairs ``(B, 3, 2, T, H, W)`` (pairs HV+AV, RL+AV,
-MV+AV; see :mod:`latentdrive.models.bottleneck`). The L2 is averaged over all elements
+MV+AV; see :mod:`latentdrive.models.bottleneck`). The error is averaged over all elements
 rather than summed, so that its scale does not depend on batch or grid size (the sum is
 this mean times a constant; only the effective learning rate differs).
 """

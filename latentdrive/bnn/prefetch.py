@@ -26,11 +26,13 @@ class _Failed:
 
 
 def prefetch(items: Iterable[T], depth: int = 2) -> Generator[T, None, None]:
-    """Yield the items of ``items`` in order, producing up to ``depth`` ahead on a thread.
+    """Yield the items of ``items`` in order, produced ahead on a thread.
 
-    ``depth = 0`` iterates in the calling thread. An exception raised by ``items`` is
-    re-raised here at the point it occurred in the sequence. Closing the generator early
-    (``break``, an exception in the consumer) stops the producer after at most one more item.
+    Up to ``depth`` items wait in a queue, plus one the producer holds while the queue is
+    full. ``depth = 0`` iterates in the calling thread. An exception raised by ``items`` is
+    re-raised here at the point it occurred in the sequence. Closing the generator
+    (``close()``, or the garbage collection of an abandoned one, as after a ``break`` or an
+    exception in a ``for`` loop) stops the producer after at most one more item.
     """
     if depth < 0:
         raise ValueError(f"depth must be >= 0, got {depth}")

@@ -129,7 +129,7 @@ class BNNTrainConfig(Config):
     )
     foreground_weight: float = Field(
         1.0, ge=1.0, le=1e4,
-        description="Weight, in the L2 loss, of vehicle cells (non-zero clean target in the HV, "
+        description="Weight, in the reconstruction loss, of vehicle cells (non-zero clean target in the HV, "
         "AV and MV channels); other cells weigh 1, and the loss is divided by the total weight. "
         "1 is the paper's plain L2 (eq. 11). Vehicles cover a few cells of mostly empty "
         "maps, so plain L2 is nearly minimized by drawing no vehicle at all; a weight > 1 "
@@ -364,7 +364,8 @@ def train_bnn(
 
     ``resume=True`` continues from ``run_dir/checkpoint.safetensors`` (a fresh start when
     there is none); the model config and all training settings except the epoch counts,
-    ``log_every``, ``device`` and ``num_threads`` must equal the saved ones.
+    ``log_every``, ``device``, ``num_threads`` and ``prefetch`` must equal the saved ones
+    (a setting the checkpoint predates counts as its default).
     ``resume=False`` refuses (CheckpointError) a ``run_dir`` that already holds a checkpoint.
 
     Returned metrics: ``epoch`` (completed), ``step``, ``train_loss``, ``train_recon``,

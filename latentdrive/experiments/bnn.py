@@ -216,6 +216,17 @@ def _finite_or_none(v: float) -> float | None:
     return v if math.isfinite(v) else None
 
 
+def _json_safe(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by None (JSON has no NaN)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
 def _fmt(v: float | None, spec: str) -> str:
     return "–" if v is None or not math.isfinite(v) else format(v, spec)
 
@@ -293,7 +304,8 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
     for name, d, lam in runs:
         report["runs"][name] = {"latent_dim": d, "lambda": lam,
                                 **evaluate_run(out / "runs" / name, data, ds, val_ids, cfg.train.batch_size)}
-    atomic_write_text(out / "report.json", json.dumps(report, indent=1) + "\n")
+    report = _json_safe(report)
+    atomic_write_text(out / "report.json", json.dumps(report, indent=1, allow_nan=False) + "\n")
     atomic_write_text(out / "report.md", format_report(report))
 
     say(f"[4/4] figures -> {out / 'figures'}")
@@ -357,10 +369,9 @@ def format_report(report: dict[str, Any]) -> str:
         "| vehicles recovered | precision of bright cells | mean between-scenario MMD² (latent) |",
         "|---|---|---|---|---|---|---|---|",
     ]
-    nan = float("nan")
-    lines += [f"| {n} | {r['latent_dim']} | {r['lambda']:g} | {r['val_recon']:.6f} | {r.get('val_vehicle_l2', nan):.4f} "
+    lines += [f"| {n} | {r['latent_dim']} | {r['lambda']:g} | {_fmt(r['val_recon'], '.6f')} | {_fmt(r.get('val_vehicle_l2'), '.4f')} "
               f"| {_fmt(r.get('vehicle_recall'), '.1%')} | {_fmt(r.get('vehicle_precision'), '.1%')} "
-              f"| {r['mean_between_scenario_distance']:.4f} |" for n, r in runs.items()]
+              f"| {_fmt(r['mean_between_scenario_distance'], '.4f')} |" for n, r in runs.items()]
     ref = report.get("noisy_input_vehicles")
     if ref is not None:
         lines += [f"| noisy input (reference) | – | – | – | – | {_fmt(ref['vehicle_recall'], '.1%')} "
@@ -371,7 +382,7 @@ def format_report(report: dict[str, Any]) -> str:
               "the share of reconstructed cells ≥ 0.25 within one cell of a real vehicle "
               "(`latentdrive.bnn.vehicles`). The reference row scores the noisy input itself as a "
               "reconstruction of the clean target."]
-    lines += ["", f"Raw-input baseline space: mean between-scenario MMD² {report['raw_mean_between_scenario_distance']:.4f}.",
+    lines += ["", f"Raw-input baseline space: mean between-scenario MMD² {_fmt(report['raw_mean_between_scenario_distance'], '.4f')}.",
               "", "## Scenario distance (MMD²), raw-input baseline space", "",
               _matrix_md(report["raw_scenarios"], report["raw_distance"])]
     for n, r in runs.items():

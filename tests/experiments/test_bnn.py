@@ -122,7 +122,10 @@ def test_train_bnn_model_overrides_reach_the_architecture(tiny_study, tmp_path, 
     assert len(err) == 1 and "model.spatial_kernel" in err[0]
 
 
-@pytest.mark.parametrize("extra", [["--set", "pretrain_epochs=5"], ["--set", "mixed_epochs=2"]])
+@pytest.mark.parametrize("extra", [
+    ["--set", "pretrain_epochs=5"], ["--set", "mixed_epochs=2"], ["--epochs", "0"],
+    ["--set", "pretrain_epochs=-1"],
+])
 def test_train_bnn_epochs_conflicts_are_refused(tiny_study, tmp_path, capsys, extra):
     out, _, _ = tiny_study
     args = ["train-bnn", str(out / "dataset"), str(tmp_path / "run"), "--epochs", "3", "-q", *extra]
@@ -130,6 +133,14 @@ def test_train_bnn_epochs_conflicts_are_refused(tiny_study, tmp_path, capsys, ex
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "epochs" in err[0]
     assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("key", ["latent_dim=8", "channels=[4]", "input_shape=[1,8,8]"])
+def test_train_bnn_model_fields_with_their_own_option_are_refused(tiny_study, tmp_path, capsys, key):
+    out, _, _ = tiny_study
+    assert main(["train-bnn", str(out / "dataset"), str(tmp_path / "run"), "-q", "--set", f"model.{key}"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"model.{key.split('=')[0]}" in err[0]
 
 
 def test_train_bnn_into_a_run_directory_in_use_writes_nothing(tiny_study, tmp_path, capsys):
