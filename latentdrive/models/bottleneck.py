@@ -80,8 +80,9 @@ class BottleneckConfig(Config):
         description="Feature channels of the encoder stages; each stage halves H and W "
         "(rounding up). The decoder mirrors them. 1 to 6 stages, each 1..512. Two stages "
         "leave an 8×16 map of 6 m squares for the linear layer to compress at the default "
-        "32×64 grid of 1.5 m cells; with a third stage (4×8 squares of 12 m) vehicles came "
-        "back more slowly (docs/bnn-study-small.md).",
+        "32×64 grid of 1.5 m cells. With a third stage (4×8 squares of 12 m), the same "
+        "training recovered fewer held-out vehicles at a higher error "
+        "(docs/bnn-study-small.md, 'Architecture and loss').",
     )
     spatial_kernel: int = Field(
         3, ge=1, le=9, description="Spatial kernel size (cells) of every convolution; odd."
