@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Iterable
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -14,7 +15,14 @@ from latentdrive.bnn.losses import vehicle_cells_l2
 from latentdrive.bnn.vehicles import VehicleCounts, vehicle_counts
 from latentdrive.models.bottleneck import BottleneckNetwork
 
-__all__ = ["VAL_KEYS", "evaluate_bnn"]
+__all__ = [
+    "VAL_KEYS",
+    "Evaluation",
+    "add_counts",
+    "evaluate_bnn",
+    "evaluate_bnn_detailed",
+    "vehicle_counts_by_scenario",
+]
 
 #: The metrics :func:`evaluate_bnn` returns, in the order they are logged.
 VAL_KEYS: tuple[str, ...] = (
@@ -22,7 +30,35 @@ VAL_KEYS: tuple[str, ...] = (
 )
 
 
-@torch.no_grad()
+def vehicle_counts_by_scenario(
+    recon: Tensor, clean: Tensor, scenario: Tensor
+) -> dict[int, VehicleCounts]:
+    """Vehicle counts of HV+AV pair reconstructions ``recon`` of ``clean`` (both
+    ``(B, 2, T, H, W)``: every frame of both channels is scored), per scenario id of
+    ``scenario`` ``(B,)``."""
+    h, w = clean.shape[-2:]
+    out: dict[int, VehicleCounts] = {}
+    for s in torch.unique(scenario).tolist():
+        keep = scenario == s
+        out[s] = vehicle_counts(recon[keep].reshape(-1, h, w), clean[keep].reshape(-1, h, w))
+    return out
+
+
+def add_counts(
+    a: dict[int, VehicleCounts], b: dict[int, VehicleCounts]
+) -> dict[int, VehicleCounts]:
+    """Per-scenario counts ``a`` plus ``b``, sorted by scenario id."""
+    zero = VehicleCounts(0, 0, 0, 0)
+    return {s: a.get(s, zero).plus(b.get(s, zero)) for s in sorted(a.keys() | b.keys())}
+
+
+class Evaluation(NamedTuple):
+    """:func:`evaluate_bnn_detailed`'s result."""
+
+    metrics: dict[str, float]  #: the keys of :data:`VAL_KEYS`
+    vehicles_by_scenario: dict[int, VehicleCounts]  #: scenario id → its vehicle counts
+
+
 def evaluate_bnn(
     model: BottleneckNetwork,
     batches: Iterable[BNNBatch],
@@ -31,7 +67,20 @@ def evaluate_bnn(
     mmd_samples: int = 256,
     rng: np.random.Generator | None = None,
 ) -> dict[str, float]:
-    """Validation metrics, the keys of :data:`VAL_KEYS`.
+    """Validation metrics, the keys of :data:`VAL_KEYS` (see :func:`evaluate_bnn_detailed`)."""
+    return evaluate_bnn_detailed(model, batches, device, mmd_samples=mmd_samples, rng=rng).metrics
+
+
+@torch.no_grad()
+def evaluate_bnn_detailed(
+    model: BottleneckNetwork,
+    batches: Iterable[BNNBatch],
+    device: torch.device,
+    *,
+    mmd_samples: int = 256,
+    rng: np.random.Generator | None = None,
+) -> Evaluation:
+    """Validation metrics, the keys of :data:`VAL_KEYS`, and vehicle counts per scenario.
 
     - ``val_loss``: the plain (unweighted) reconstruction MSE averaged over all samples,
       comparable across runs whatever their training weights.
@@ -48,7 +97,7 @@ def evaluate_bnn(
     model.eval()
     total, count = 0.0, 0
     veh_sum, veh_count = 0.0, 0
-    counts = VehicleCounts(0, 0, 0, 0)
+    per_scenario: dict[int, VehicleCounts] = {}
     lat: list[Tensor] = []
     lab: list[Tensor] = []
     for batch in batches:
@@ -59,10 +108,8 @@ def evaluate_bnn(
         v_sum, v_count = vehicle_cells_l2(recon_x, target)
         veh_sum += float(v_sum)
         veh_count += int(v_count)
-        # HV and AV channels of the HV+AV pair, every frame, as (N, H, W) maps.
-        h, w = target.shape[-2:]
-        counts = counts.plus(
-            vehicle_counts(recon_x[:, 0].reshape(-1, h, w), target[:, 0].reshape(-1, h, w))
+        per_scenario = add_counts(
+            per_scenario, vehicle_counts_by_scenario(recon_x[:, 0], target[:, 0], b.scenario)
         )
         n = b.noisy.shape[0]
         total += float(loss) * n
@@ -72,13 +119,15 @@ def evaluate_bnn(
     model.train(was_training)
     if count == 0:
         raise ValueError("the validation batches are empty")
-    return {
+    counts = VehicleCounts.total(per_scenario.values())
+    metrics = {
         "val_loss": total / count,
         "val_vehicle_l2": veh_sum / veh_count if veh_count else float("nan"),
         "val_vehicle_recall": counts.recall,
         "val_vehicle_precision": counts.precision,
         "val_mmd": _mean_scenario_distance(torch.cat(lat), torch.cat(lab), mmd_samples, rng),
     }
+    return Evaluation(metrics, per_scenario)
 
 
 def _mean_scenario_distance(

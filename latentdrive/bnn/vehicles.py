@@ -25,6 +25,7 @@ All functions are pure torch, vectorized over the batch and frames; masks and ma
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from typing import NamedTuple
 
 import torch
@@ -43,7 +44,16 @@ class VehicleCounts(NamedTuple):
     bright_on_vehicles: int  #: of those, how many lie on or next to a real vehicle
 
     def plus(self, other: VehicleCounts) -> VehicleCounts:
+        # Not `+`, which on a NamedTuple concatenates.
         return VehicleCounts(*(a + b for a, b in zip(self, other, strict=True)))
+
+    @staticmethod
+    def total(counts: Iterable[VehicleCounts]) -> VehicleCounts:
+        """The sum of ``counts`` (all zero when empty)."""
+        out = VehicleCounts(0, 0, 0, 0)
+        for c in counts:
+            out = out.plus(c)
+        return out
 
     @property
     def recall(self) -> float:

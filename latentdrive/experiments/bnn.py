@@ -30,9 +30,9 @@ from pydantic import Field, field_validator
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import atomic_write_text
 from latentdrive.bnn.distance import distance_matrix
-from latentdrive.bnn.evaluate import evaluate_bnn
+from latentdrive.bnn.evaluate import add_counts, evaluate_bnn_detailed, vehicle_counts_by_scenario
 from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
-from latentdrive.bnn.vehicles import VehicleCounts, vehicle_counts
+from latentdrive.bnn.vehicles import VehicleCounts
 from latentdrive.config import Config, ConfigError, load_yaml, merge_overrides, validate
 from latentdrive.data.collect import CollectConfig, collect
 from latentdrive.data.dataset import ShardDataset
@@ -231,45 +231,37 @@ def _fmt(v: float | None, spec: str) -> str:
     return "–" if v is None or not math.isfinite(v) else format(v, spec)
 
 
-@torch.no_grad()
-def vehicle_recovery(ds: ShardDataset, val_ids: np.ndarray, batch_size: int,
-                     model: BottleneckNetwork | None = None) -> dict[str, Any]:
-    """Vehicle recall and precision (:mod:`latentdrive.bnn.vehicles`) of ``model``'s
-    reconstructions over the held-out episodes, overall and per scenario.
+def _recall_by_name(ds: ShardDataset, per: dict[int, VehicleCounts]) -> dict[str, float | None]:
+    return {ds.scenario_names[s]: _finite_or_none(c.recall) for s, c in per.items() if c.vehicles}
 
-    With ``model=None`` the noisy input itself is scored as the reconstruction of the clean
-    target: the reference for the runs. Returns ``vehicle_recall``, ``vehicle_precision``,
+
+def input_vehicle_recovery(ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
+    """The noisy input scored as if it were a reconstruction of the clean target, over the
+    held-out episodes: the reference for the runs' vehicle scores
+    (:mod:`latentdrive.bnn.vehicles`). Returns ``vehicle_recall``, ``vehicle_precision``,
     ``vehicles`` and ``by_scenario`` (name → recall); undefined values are None.
     """
-    names = list(ds.scenario_names)
-    per = [VehicleCounts(0, 0, 0, 0) for _ in names]
+    per: dict[int, VehicleCounts] = {}
     for b in ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False):
-        recon = channel_pairs(b.noisy)[:, 0] if model is None else model(b.noisy)[0][:, 0]
-        clean = channel_pairs(b.clean)[:, 0]
-        for s in torch.unique(b.scenario).tolist():
-            keep = b.scenario == s
-            r, t = recon[keep], clean[keep]
-            h, w = t.shape[-2:]
-            per[s] = per[s].plus(vehicle_counts(r.reshape(-1, h, w), t.reshape(-1, h, w)))
-    total = VehicleCounts(0, 0, 0, 0)
-    for counts in per:
-        total = total.plus(counts)
+        per = add_counts(per, vehicle_counts_by_scenario(channel_pairs(b.noisy)[:, 0], channel_pairs(b.clean)[:, 0],
+                                                         b.scenario))
+    total = VehicleCounts.total(per.values())
     return {"vehicle_recall": _finite_or_none(total.recall),
             "vehicle_precision": _finite_or_none(total.precision), "vehicles": total.vehicles,
-            "by_scenario": {n: _finite_or_none(c.recall) for n, c in zip(names, per, strict=True) if c.vehicles}}
+            "by_scenario": _recall_by_name(ds, per)}
 
 
 def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
     """Held-out reconstruction error and latent scenario distances of one trained run."""
     model = load_trained_bottleneck(run_dir)
-    metrics = evaluate_bnn(model, ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False),
-                           torch.device("cpu"), mmd_samples=2)
+    metrics, per = evaluate_bnn_detailed(model, ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False),
+                                         torch.device("cpu"), mmd_samples=2)
     names, lat = distance_matrix(data.by_scenario(encode(model, data.noisy)))
-    vehicles = vehicle_recovery(ds, val_ids, batch_size, model)
     return {"val_recon": metrics["val_loss"], "val_vehicle_l2": metrics["val_vehicle_l2"],
             # None, not NaN, when undefined (no vehicles, nothing drawn): JSON has no NaN.
-            "vehicle_recall": vehicles["vehicle_recall"], "vehicle_precision": vehicles["vehicle_precision"],
-            "vehicle_recall_by_scenario": vehicles["by_scenario"],
+            "vehicle_recall": _finite_or_none(metrics["val_vehicle_recall"]),
+            "vehicle_precision": _finite_or_none(metrics["val_vehicle_precision"]),
+            "vehicle_recall_by_scenario": _recall_by_name(ds, per),
             "latent_scenarios": names, "latent_distance": lat.tolist(),
             "mean_between_scenario_distance": _mean_offdiag(lat)}
 
@@ -298,7 +290,7 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
     report: dict[str, Any] = {
         "dataset_samples": len(ds), "held_out_samples": len(data.scenario),
         "raw_scenarios": names, "raw_distance": raw.tolist(), "raw_mean_between_scenario_distance": _mean_offdiag(raw),
-        "noisy_input_vehicles": vehicle_recovery(ds, val_ids, cfg.train.batch_size),
+        "noisy_input_vehicles": input_vehicle_recovery(ds, val_ids, cfg.train.batch_size),
         "runs": {},
     }
     for name, d, lam in runs:

@@ -17,6 +17,7 @@ from latentdrive.bnn import train as train_mod
 from latentdrive.bnn.batch import BNNBatch, array_batches_fn, iterate_batches, synthetic_dataset
 from latentdrive.bnn.checkpoint import CheckpointError, read_checkpoint
 from latentdrive.bnn.losses import (
+    LossKind,
     reconstruction_error,
     reconstruction_loss,
     step_losses,
@@ -162,9 +163,10 @@ def test_train_step_uses_step_losses(
 ) -> None:
     seen: list[tuple[torch.Tensor, float]] = []
 
-    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0, fg: float = 1.0):
+    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0, fg: float = 1.0,
+            loss: LossKind = "l2"):
         seen.append((batch.clean, lam))
-        return step_losses(model, batch, lam, fg)
+        return step_losses(model, batch, lam, fg, loss)
 
     monkeypatch.setattr(train_mod, "step_losses", spy)
     train_fn, _ = _fns(data, 32, 16, stratify_from=1)

@@ -100,3 +100,9 @@ def test_a_car_one_cell_off_counts_within_the_tolerance_only() -> None:
     assert vehicle_counts(r, t, tolerance=0) == VehicleCounts(1, 0, 2, 0)
     with pytest.raises(ValueError, match="tolerance"):
         vehicle_counts(r, t, tolerance=-1)
+
+
+def test_total_adds_field_by_field() -> None:
+    parts = [VehicleCounts(3, 2, 10, 7), VehicleCounts(1, 1, 0, 0)]
+    assert VehicleCounts.total(parts) == VehicleCounts(4, 3, 10, 7)
+    assert VehicleCounts.total([]) == VehicleCounts(0, 0, 0, 0)
