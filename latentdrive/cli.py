@@ -139,19 +139,17 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
         raise ConfigError(f"model.{clash[0]} is set by {own[clash[0]]}, not --set")
     base = {"lambda_distance": args.lam, "seed": args.seed, "foreground_weight": args.foreground_weight}
     if args.epochs is not None:
-        # --epochs is the total; pretraining keeps its own (overridable) length within it.
         if args.epochs < 1:
             raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
         if "mixed_epochs" in overrides:
             raise ConfigError("give --epochs or --set mixed_epochs=..., not both")
-        pretrain = overrides.get("pretrain_epochs", min(args.epochs, 10))
-        # Anything but a plain integer is left to validate() below, which names the field.
-        if isinstance(pretrain, int) and not isinstance(pretrain, bool):
-            if pretrain > args.epochs:
-                raise ConfigError(f"--epochs {args.epochs} is shorter than pretrain_epochs={pretrain}")
-            if pretrain >= 0:
-                base.update(pretrain_epochs=pretrain, mixed_epochs=args.epochs - pretrain)
+        base["pretrain_epochs"] = min(args.epochs, 10)
     cfg = validate(BNNTrainConfig, {**base, **overrides}, prefix="train.")
+    if args.epochs is not None:
+        # --epochs is the total; pretraining keeps its own (overridable) length within it.
+        if cfg.pretrain_epochs > args.epochs:
+            raise ConfigError(f"--epochs {args.epochs} is shorter than pretrain_epochs={cfg.pretrain_epochs}")
+        cfg = cfg.replace(mixed_epochs=args.epochs - cfg.pretrain_epochs)
     metrics = train_on_dataset(args.dataset, args.run_dir, cfg, args.latent_dim, channels=tuple(args.channels),
                                val_fraction=args.val_fraction, resume=args.resume, progress=not args.quiet,
                                model=model)

@@ -15,14 +15,7 @@ from latentdrive.bnn.losses import vehicle_cells_l2
 from latentdrive.bnn.vehicles import VehicleCounts, vehicle_counts
 from latentdrive.models.bottleneck import BottleneckNetwork
 
-__all__ = [
-    "VAL_KEYS",
-    "Evaluation",
-    "add_counts",
-    "evaluate_bnn",
-    "evaluate_bnn_detailed",
-    "vehicle_counts_by_scenario",
-]
+__all__ = ["VAL_KEYS", "Evaluation", "add_counts", "evaluate_bnn", "vehicle_counts_by_scenario"]
 
 #: The metrics :func:`evaluate_bnn` returns, in the order they are logged.
 VAL_KEYS: tuple[str, ...] = (
@@ -53,26 +46,14 @@ def add_counts(
 
 
 class Evaluation(NamedTuple):
-    """:func:`evaluate_bnn_detailed`'s result."""
+    """:func:`evaluate_bnn`'s result."""
 
     metrics: dict[str, float]  #: the keys of :data:`VAL_KEYS`
     vehicles_by_scenario: dict[int, VehicleCounts]  #: scenario id → its vehicle counts
 
 
-def evaluate_bnn(
-    model: BottleneckNetwork,
-    batches: Iterable[BNNBatch],
-    device: torch.device,
-    *,
-    mmd_samples: int = 256,
-    rng: np.random.Generator | None = None,
-) -> dict[str, float]:
-    """Validation metrics, the keys of :data:`VAL_KEYS` (see :func:`evaluate_bnn_detailed`)."""
-    return evaluate_bnn_detailed(model, batches, device, mmd_samples=mmd_samples, rng=rng).metrics
-
-
 @torch.no_grad()
-def evaluate_bnn_detailed(
+def evaluate_bnn(
     model: BottleneckNetwork,
     batches: Iterable[BNNBatch],
     device: torch.device,

@@ -3,7 +3,10 @@
 Training reads its batches from compressed shards; decompressing and dequantizing them
 costs about a third of a small model's CPU step. Both release the GIL, so a thread can
 prepare the next batches while the optimizer step runs. Order and content are those of
-the wrapped iterator, so results do not change.
+the wrapped iterator, so results do not change. On a 2-core CPU where torch already uses
+both cores the gain is small: two epochs of the study's d = 64 ran at 334 and 313
+samples/s without read-ahead and 335 and 341 with it. It is meant for setups where the
+model leaves CPU cores idle (training on a GPU); that case is not measured here.
 """
 
 from __future__ import annotations

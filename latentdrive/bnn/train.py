@@ -487,7 +487,7 @@ def _train(
                     val = evaluate_bnn(
                         model, val_batches_fn(), device,
                         mmd_samples=cfg.val_mmd_samples, rng=np_rng,
-                    )
+                    ).metrics
                 elapsed = time.perf_counter() - t_epoch
                 train_loss, train_recon, train_reg = ep.means()
                 last = {

@@ -30,7 +30,7 @@ from pydantic import Field, field_validator
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import atomic_write_text
 from latentdrive.bnn.distance import distance_matrix
-from latentdrive.bnn.evaluate import add_counts, evaluate_bnn_detailed, vehicle_counts_by_scenario
+from latentdrive.bnn.evaluate import add_counts, evaluate_bnn, vehicle_counts_by_scenario
 from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
 from latentdrive.bnn.vehicles import VehicleCounts
 from latentdrive.config import Config, ConfigError, load_yaml, merge_overrides, validate
@@ -254,7 +254,7 @@ def input_vehicle_recovery(ds: ShardDataset, val_ids: np.ndarray, batch_size: in
 def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
     """Held-out reconstruction error and latent scenario distances of one trained run."""
     model = load_trained_bottleneck(run_dir)
-    metrics, per = evaluate_bnn_detailed(model, ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False),
+    metrics, per = evaluate_bnn(model, ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False),
                                          torch.device("cpu"), mmd_samples=2)
     names, lat = distance_matrix(data.by_scenario(encode(model, data.noisy)))
     return {"val_recon": metrics["val_loss"], "val_vehicle_l2": metrics["val_vehicle_l2"],

@@ -5,7 +5,7 @@ from __future__ import annotations
 import torch
 
 from latentdrive.bnn.batch import BNNBatch
-from latentdrive.bnn.evaluate import add_counts, evaluate_bnn_detailed, vehicle_counts_by_scenario
+from latentdrive.bnn.evaluate import add_counts, evaluate_bnn, vehicle_counts_by_scenario
 from latentdrive.bnn.vehicles import VehicleCounts
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 
@@ -29,7 +29,7 @@ def test_overall_scores_are_the_sum_of_the_scenarios() -> None:
     model = BottleneckNetwork(BottleneckConfig(input_shape=(2, 8, 8), latent_dim=4, channels=(4,)))
     clean = (torch.rand(6, 4, 2, 8, 8) > 0.9).float() * 0.7
     batch = BNNBatch(clean, clean, torch.tensor([0, 1, 0, 1, 2, 2]))
-    result = evaluate_bnn_detailed(model, [batch], torch.device("cpu"), mmd_samples=2)
+    result = evaluate_bnn(model, [batch], torch.device("cpu"), mmd_samples=2)
     total = VehicleCounts.total(result.vehicles_by_scenario.values())
     assert set(result.vehicles_by_scenario) == {0, 1, 2} and total.vehicles > 0
     assert result.metrics["val_vehicle_recall"] == total.recall
