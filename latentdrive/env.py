@@ -3,16 +3,27 @@
 One env holds ``n_av`` agents that share a policy. Observations are stacked VelocityMaps
 of every agent, ``(n_av, 4, T, H, W)`` float32 in [0, 1]; actions are one meta-action
 index per agent (``MultiDiscrete([5] * n_av)``); the scalar reward is the mean of the
-per-agent rewards, which are in ``info["agent_rewards"]`` for learners that want them
-separately (parameter sharing learns from each agent's transition).
+per-agent rewards.
+
+Per-agent episodes (``info["agents"]``, an :class:`AgentStep`):
+
+- an AV *terminates* on the step it crashes or completes its mission. Its transition of
+  that step has no bootstrap; it earns nothing afterwards and stores no more transitions,
+  and the env drives it with Idle whatever action it is given;
+- the *episode* ends when any AV has crashed or every AV has completed its mission
+  (terminated), or when time runs out (truncated). AVs still driving then are *cut off*
+  (``AgentStep.truncated``): their last transition bootstraps from the next observation,
+  because nothing about their own state ended;
+- ``step()`` after the episode ended raises; call ``reset()``.
 """
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Literal
+from typing import Any, ClassVar, Literal, NamedTuple
 
 import gymnasium as gym
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import Field
 
 from latentdrive.actions import N_ACTIONS
@@ -23,7 +34,38 @@ from latentdrive.scenarios import RewardConfig, ScenarioSpec, get_spec
 from latentdrive.scene import Scene
 from latentdrive.sim import make_backend
 
-__all__ = ["DrivingEnv", "EnvConfig", "Episode", "make_env", "make_env_config", "resolve_config"]
+__all__ = ["AgentStep", "DrivingEnv", "EnvConfig", "Episode", "EpisodeEnded", "make_env", "make_env_config",
+           "resolve_config"]
+
+#: The action an inactive (crashed or arrived) AV is driven with.
+_IDLE = 1
+
+
+class EpisodeEnded(RuntimeError):
+    """``step()`` was called after the episode ended; call ``reset()`` first."""
+
+
+class AgentStep(NamedTuple):
+    """Per-agent account of one policy step; every field ``(n_av,)`` (vector env: ``(num_envs, n_av)``).
+
+    ``acting`` agents chose this step's action: each has a transition. Of those, exactly one
+    of ``terminated`` (crashed or completed its mission on this step: do not bootstrap),
+    ``truncated`` (the episode ended for another reason: bootstrap from the next
+    observation) and ``active`` (drives on) is true. After ``reset()``: all ``active``,
+    none acting.
+    """
+
+    reward: NDArray[np.float64]
+    acting: NDArray[np.bool_]
+    terminated: NDArray[np.bool_]
+    truncated: NDArray[np.bool_]
+    active: NDArray[np.bool_]
+
+    @classmethod
+    def start(cls, n_av: int) -> AgentStep:
+        """The account after a reset: nobody acted yet, everybody is active."""
+        no = np.zeros(n_av, dtype=bool)
+        return cls(np.zeros(n_av), no, no.copy(), no.copy(), np.ones(n_av, dtype=bool))
 
 
 class EnvConfig(Config):
@@ -68,23 +110,32 @@ class Episode:
         self.scene: Scene | None = None
         self.steps = 0
         self.seed = 0
+        self.active = np.zeros(config.scenario.n_av, dtype=bool)
+        self.ended = False
 
     def start(self, scene: Scene, episode_seed: int) -> tuple[np.ndarray, dict[str, Any]]:
         """Begin an episode at ``scene``, the backend's reset for ``episode_seed``."""
         self.seed, self.scene, self.steps = episode_seed, scene, 0
+        self.active = np.ones(self.spec.n_av, dtype=bool)
+        self.ended = False
         # Sensor noise has its own stream, derived from the episode seed.
         self._noise_rng = np.random.default_rng([episode_seed, 2])
         self._stack.reset(self._frame(scene, noisy=True))
         if self.config.clean_observation:
             self._clean_stack.reset(self._frame(scene, noisy=False))
-        return self._stack.stack, self._info(scene, np.zeros(self.spec.n_av))
+        return self._stack.stack, self._info(scene, AgentStep.start(self.spec.n_av))
 
     def check_actions(self, action: np.ndarray) -> np.ndarray:
-        """``action`` as ``(n_av,)`` int64, or ValueError."""
+        """``action`` as ``(n_av,)`` int64 with inactive AVs set to Idle; ValueError or EpisodeEnded."""
+        if self.scene is None:
+            raise RuntimeError("call reset() first")
+        if self.ended:
+            raise EpisodeEnded("the episode has ended; call reset() before step()")
         actions = np.asarray(action, dtype=np.int64).reshape(-1)
         if actions.shape != (self.spec.n_av,) or actions.min() < 0 or actions.max() >= N_ACTIONS:
             raise ValueError(f"action must be {self.spec.n_av} integers in [0, {N_ACTIONS}), got {action!r}")
-        return actions
+        # What an AV that has finished is told to do must not change the simulation.
+        return np.where(self.active, actions, _IDLE)
 
     def advance(self, scene: Scene) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Account for one policy step that led to ``scene``."""
@@ -94,24 +145,33 @@ class Episode:
         self.scene = scene
         self.steps += 1
         ag, prev = scene.agents, before.agents
+        acting = self.active
         rewards = agent_rewards(
             scene.speed[ag], scene.crashed[ag], scene.arrived[ag],  # type: ignore[index]
             before.crashed[prev], before.arrived[prev],  # type: ignore[index]
             self.spec.reward_speed_range, self.config.reward,
         )
+        # A crashed or arrived AV earns nothing after its terminal step.
+        rewards = np.where(acting, rewards, 0.0)
         terminated, truncated = episode_end(scene, self.steps, self.spec)
+        self.ended = terminated or truncated
+        own_end = acting & (scene.crashed[ag] | scene.arrived[ag])  # type: ignore[index]
+        cut_off = acting & ~own_end & self.ended
+        self.active = acting & ~own_end & ~self.ended
+        agents = AgentStep(rewards, acting.copy(), own_end, cut_off, self.active.copy())
         self._stack.push(self._frame(scene, noisy=True))
         if self.config.clean_observation:
             self._clean_stack.push(self._frame(scene, noisy=False))
-        return self._stack.stack, float(rewards.mean()), terminated, truncated, self._info(scene, rewards)
+        return self._stack.stack, float(rewards.mean()), terminated, truncated, self._info(scene, agents)
 
     def _frame(self, scene: Scene, noisy: bool) -> np.ndarray:
         return render_frame(scene, scene.agents, self.config.observation, rng=self._noise_rng if noisy else None)
 
-    def _info(self, scene: Scene, rewards: np.ndarray) -> dict[str, Any]:
+    def _info(self, scene: Scene, agents: AgentStep) -> dict[str, Any]:
         info: dict[str, Any] = {
             "scene": scene,
-            "agent_rewards": rewards,
+            "agents": agents,
+            "agent_rewards": agents.reward,
             "crashed": scene.crashed[scene.agents].copy(),
             "arrived": scene.arrived[scene.agents].copy(),  # type: ignore[index]
             "scenario": self.spec.name,
@@ -142,9 +202,12 @@ class DrivingEnv(gym.Env[np.ndarray, np.ndarray]):
         config: a complete config (overrides then apply on top of it).
         **overrides: see :func:`make_env_config`.
 
-    ``info`` after reset and step holds ``scene`` (the :class:`Scene`), ``agent_rewards``
-    ``(n_av,)``, ``crashed`` and ``arrived`` ``(n_av,)`` bool, ``scenario`` and
-    ``episode_seed``.
+    ``info`` after reset and step holds ``scene`` (the :class:`Scene`), ``agents`` (the
+    :class:`AgentStep` of this step: per-agent reward and terminated / cut-off / active
+    flags; see the module docstring), ``agent_rewards`` (``agents.reward``), ``crashed``
+    and ``arrived`` ``(n_av,)`` bool, ``scenario`` and ``episode_seed``. The episode
+    ``terminated`` when any AV crashed or every AV completed its mission, and is
+    ``truncated`` when time ran out; ``step()`` after either raises :class:`EpisodeEnded`.
     """
 
     metadata: ClassVar[dict[str, Any]] = {"render_modes": []}  # type: ignore[misc]
@@ -175,8 +238,6 @@ class DrivingEnv(gym.Env[np.ndarray, np.ndarray]):
 
     def step(self, action: np.ndarray) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         actions = self._episode.check_actions(action)
-        if self._episode.scene is None:
-            raise RuntimeError("call reset() first")
         return self._episode.advance(self._backend.step(actions))
 
 

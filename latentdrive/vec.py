@@ -20,7 +20,7 @@ from gymnasium.vector.utils import batch_space
 
 from latentdrive.actions import N_ACTIONS
 from latentdrive.config import ConfigError
-from latentdrive.env import Episode, make_env_config
+from latentdrive.env import AgentStep, Episode, make_env_config
 from latentdrive.scenarios import ScenarioSpec
 from latentdrive.sim import make_batch
 
@@ -31,12 +31,23 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
     """``num_envs`` driving environments stepped together.
 
     Observations ``(num_envs, n_av, 4, T, H, W)``; actions ``(num_envs, n_av)``; rewards
-    ``(num_envs,)`` (each the mean over that environment's agents). Auto-reset happens in
-    the same step: when environment i ends, the returned observation is the first of its
-    next episode, and ``info["final_obs"][i]`` / ``info["final_info"][i]`` hold the last
-    one (masks ``_final_obs`` / ``_final_info``). ``info`` also holds, per environment,
+    ``(num_envs,)`` (each the mean over that environment's agents).
+
+    Auto-reset follows gymnasium 1.x's same-step mode. When environment i ends, the
+    returned observation is the first of its next episode, ``info`` describes that new
+    episode, ``info["final_obs"][i]`` is the ended episode's last observation and
+    ``info["final_info"]`` holds the ended episodes' infos as a dict of arrays (entry i
+    valid where ``info["final_info"]["_<key>"][i]``; masks ``_final_obs`` /
+    ``_final_info``). Like ``rewards``, ``terminations`` and ``truncations``,
+    ``info["agents"]`` (an :class:`~latentdrive.env.AgentStep` of ``(num_envs, n_av)``
+    arrays) describes the transition just taken, so for an ended environment it is the
+    ended episode's last step; its AVs all act on the next step. ``info`` also holds
     ``agent_rewards``, ``crashed``, ``arrived`` ``(num_envs, n_av)``, ``episode_seed``,
-    ``scenario`` and ``scene`` (object arrays).
+    ``scenario`` and ``scene`` (object arrays) of the current episodes.
+
+    ``reset(seed=s)`` gives environment i the seed ``s + i``; ``reset()`` without a seed
+    continues each environment's seeded sequence (entropy only before the first seeded
+    reset), as a single env does.
 
     Args:
         scenarios: one scenario (name or spec) per environment.
@@ -65,7 +76,7 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self._batch = make_batch([c.scenario for c in configs], backend)
         self._episodes = [Episode(c) for c in configs]
-        self._rngs = [np.random.default_rng() for _ in configs]
+        self._rngs: list[np.random.Generator] | None = None
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -77,12 +88,17 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
             if len(seeds) != self.num_envs:
                 raise ValueError(f"got {len(seeds)} seeds for {self.num_envs} environments")
         # Each environment owns the generator its episode seeds come from, seeded like
-        # DrivingEnv's np_random, so environment i matches a single env seeded s + i.
-        self._rngs = [np.random.default_rng(s) for s in seeds]
+        # DrivingEnv's np_random, so environment i matches a single env seeded s + i. A
+        # missing seed keeps the environment's generator, as gymnasium's Env.reset does.
+        old = self._rngs
+        self._rngs = [np.random.default_rng(s) if s is not None or old is None else old[i]
+                      for i, s in enumerate(seeds)]
         episode_seeds = [self._next_seed(i) for i in range(self.num_envs)]
         scenes = self._batch.reset(episode_seeds)
         results = [ep.start(sc, es) for ep, sc, es in zip(self._episodes, scenes, episode_seeds, strict=True)]
-        return np.stack([o for o, _ in results]), self._merge([info for _, info in results])
+        info = self._merge([info for _, info in results])
+        info["agents"] = AgentStep(*(np.stack(f) for f in zip(*(i["agents"] for _, i in results), strict=True)))
+        return np.stack([o for o, _ in results]), info
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         acts = np.asarray(actions)
@@ -92,26 +108,45 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         scenes = self._batch.step(checked)
         obs, rewards, terms, truncs, infos = zip(*(ep.advance(sc) for ep, sc in zip(self._episodes, scenes, strict=True)), strict=True)
         obs_list, info_list = list(obs), list(infos)
+        agents = AgentStep(*(np.stack(f) for f in zip(*(inf["agents"] for inf in infos), strict=True)))
         done = [i for i in range(self.num_envs) if terms[i] or truncs[i]]
         final_obs = np.full(self.num_envs, None, dtype=object)
-        final_info = np.full(self.num_envs, None, dtype=object)
+        ended = [None] * self.num_envs
         if done:
             seeds = [self._next_seed(i) for i in done]
             for i, scene, s in zip(done, self._batch.reset(seeds, env_ids=done), seeds, strict=True):
-                final_obs[i], final_info[i] = obs_list[i], info_list[i]
+                final_obs[i], ended[i] = obs_list[i], info_list[i]
                 obs_list[i], info_list[i] = self._episodes[i].start(scene, s)
-                # The agents' rewards and flags of the step that ended the episode stay visible.
-                for key in ("agent_rewards", "crashed", "arrived"):
-                    info_list[i][key] = final_info[i][key]
         info = self._merge(info_list)
+        info["agents"] = agents
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[done] = True
-        info.update(final_obs=final_obs, _final_obs=mask, final_info=final_info, _final_info=mask.copy())
+        info.update(final_obs=final_obs, _final_obs=mask, final_info=self._merge_some(ended), _final_info=mask.copy())
         return (np.stack(obs_list), np.asarray(rewards, dtype=np.float64), np.asarray(terms, dtype=bool),
                 np.asarray(truncs, dtype=bool), info)
 
     def _next_seed(self, i: int) -> int:
+        if self._rngs is None:
+            raise RuntimeError("call reset() first")
         return int(self._rngs[i].integers(2**63 - 1))
+
+    def _merge_some(self, infos: list[dict[str, Any] | None]) -> dict[str, Any]:
+        """gymnasium's dict-of-arrays form of the infos present in ``infos`` (``_key`` masks)."""
+        present = [i for i, info in enumerate(infos) if info is not None]
+        out: dict[str, Any] = {}
+        if not present:
+            return out
+        mask = np.zeros(self.num_envs, dtype=bool)
+        mask[present] = True
+        first = infos[present[0]]
+        assert first is not None
+        for key, value in first.items():
+            arr = np.empty(self.num_envs, dtype=object) if not isinstance(value, np.ndarray | int | float | bool | np.number) \
+                else np.zeros((self.num_envs, *np.shape(value)), dtype=np.asarray(value).dtype)
+            for i in present:
+                arr[i] = infos[i][key]  # type: ignore[index]
+            out[key], out[f"_{key}"] = arr, mask.copy()
+        return out
 
     def _merge(self, infos: list[dict[str, Any]]) -> dict[str, Any]:
         out: dict[str, Any] = {}

@@ -57,12 +57,23 @@ def test_vector_env_matches_single_envs_and_auto_resets():
         for i, env in enumerate(singles):
             o, r, te, tr, inf = env.step(actions[i])
             assert r == rew[i] and te == term[i] and tr == trunc[i]
-            np.testing.assert_array_equal(inf["agent_rewards"], info["agent_rewards"][i])
+            # info["agents"] describes the transition just taken, like rew/term/trunc.
+            np.testing.assert_array_equal(inf["agents"].reward, info["agents"].reward[i])
+            np.testing.assert_array_equal(inf["agents"].truncated, info["agents"].truncated[i])
             if te or tr:
                 resets += 1
-                assert info["_final_obs"][i]
+                assert info["_final_obs"][i] and info["_final_info"][i]
                 np.testing.assert_array_equal(info["final_obs"][i], o)
-                o, _ = env.reset()  # the next episode seed comes from the env's own stream
+                # gymnasium 1.x: final_info is a dict of arrays with per-key masks.
+                fin = info["final_info"]
+                assert fin["_crashed"][i] and fin["episode_seed"][i] == inf["episode_seed"]
+                np.testing.assert_array_equal(fin["crashed"][i], inf["crashed"])
+                o, inf = env.reset()  # the next episode seed comes from the env's own stream
+                # ... and the rest of info is the new episode's, not a mix of both.
+                assert info["episode_seed"][i] == inf["episode_seed"]
+                np.testing.assert_array_equal(info["agent_rewards"][i], [0.0, 0.0])
+            else:
+                assert not info["_final_info"][i]
             np.testing.assert_array_equal(o, obs[i])
     assert resets >= 2
 
@@ -100,3 +111,27 @@ def test_bad_vector_actions_are_rejected():
     vec.reset(seed=0)
     with pytest.raises(ValueError, match="actions"):
         vec.step(np.zeros((2, 2), dtype=int))
+
+
+def test_seedless_reset_continues_the_seeded_sequence():
+    """Like a single env: reset(seed=s) fixes every later episode, reset() included."""
+    a = latentdrive.make_vec("merge", 2, **SMALL)
+    b = latentdrive.make_vec("merge", 2, **SMALL)
+    a.reset(seed=5)
+    b.reset(seed=5)
+    _, ia = a.reset()
+    _, ib = b.reset()
+    np.testing.assert_array_equal(ia["episode_seed"], ib["episode_seed"])
+    single = make_env("merge", backend="fast", **SMALL)
+    single.reset(seed=5)
+    _, i1 = single.reset()
+    assert i1["episode_seed"] == ia["episode_seed"][0]
+
+
+def test_vector_reset_info_marks_every_agent_active():
+    vec = latentdrive.make_vec("merge", 3, **SMALL)
+    _, info = vec.reset(seed=0)
+    assert info["agents"].active.shape == (3, 2) and info["agents"].active.all()
+    assert not info["agents"].acting.any()
+    _, _, _, _, info = vec.step(np.ones((3, 2), dtype=int))
+    assert info["agents"].acting.all()
