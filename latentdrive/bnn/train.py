@@ -216,7 +216,7 @@ def _peak_rss_mb() -> float:
 
 
 @contextlib.contextmanager
-def _torch_settings(enabled: bool, device: torch.device, num_threads: int) -> Iterator[None]:
+def torch_settings(enabled: bool, device: torch.device, num_threads: int) -> Iterator[None]:
     """Set deterministic algorithms and the thread count for a run; restore the process's after."""
     prev = torch.are_deterministic_algorithms_enabled()
     prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
@@ -398,7 +398,7 @@ def _train(
     device = resolve_device(cfg.device)
     say: Callable[[str], None] = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
 
-    with _torch_settings(cfg.deterministic, device, cfg.num_threads):
+    with torch_settings(cfg.deterministic, device, cfg.num_threads):
         # Seeding: the model's initial weights come from torch's global generator, the
         # trainer's own draws (validation subsampling) from a numpy generator.
         torch.manual_seed(cfg.seed)

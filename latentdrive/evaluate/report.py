@@ -143,7 +143,8 @@ def _render(header: Sequence[str], rows: Sequence[Sequence[str]], left: int) -> 
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
 
     def line(cells: Sequence[str]) -> str:
-        padded = [c.ljust(w) if i < left else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths))]
+        pairs = enumerate(zip(cells, widths, strict=True))
+        padded = [c.ljust(w) if i < left else c.rjust(w) for i, (c, w) in pairs]
         return "  ".join(padded).rstrip()
 
     return "\n".join([line(header), line(["-" * w for w in widths]), *map(line, rows)])

@@ -1,0 +1,72 @@
+"""The reference policies every evaluation table shows beside a learned one.
+
+- ``random``: uniform meta-actions;
+- ``idle``: always Idle (keep the target speed and lane);
+- ``stop``: always Decelerate. It rarely crashes and never completes a mission, which is
+  why the failure rate, not the crash rate, is the headline;
+- ``rule``: the rule-based car follower of :func:`latentdrive.data.policies.rule_policy`,
+  cruising at the scenario's top AV target speed, without lane changes.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from functools import partial
+
+import numpy as np
+from numpy.typing import NDArray
+
+from latentdrive.actions import ACTION_NAMES, N_ACTIONS
+from latentdrive.config import ConfigError
+from latentdrive.data.policies import rule_policy
+from latentdrive.rollout import Policy, PolicyInput
+from latentdrive.scenarios import get_spec
+
+__all__ = ["REFERENCE_POLICIES", "reference_policy"]
+
+REFERENCE_POLICIES: tuple[str, ...] = ("random", "idle", "stop", "rule")
+_IDLE, _SLOWER = ACTION_NAMES.index("Idle"), ACTION_NAMES.index("Decelerate")
+
+
+def _constant(action: int) -> Policy:
+    def policy(inp: PolicyInput) -> NDArray[np.int64]:
+        return np.full(inp.active.shape, action, dtype=np.int64)
+
+    return policy
+
+
+def _random(seed: int) -> Policy:
+    rng = np.random.default_rng(seed)
+
+    def policy(inp: PolicyInput) -> NDArray[np.int64]:
+        return rng.integers(0, N_ACTIONS, size=inp.active.shape, dtype=np.int64)
+
+    return policy
+
+
+def _rule(seed: int) -> Policy:
+    rng = np.random.default_rng(seed)
+    cruise: dict[str, float] = {}
+
+    def policy(inp: PolicyInput) -> NDArray[np.int64]:
+        out = []
+        for scene, name in zip(inp.scenes, inp.scenarios, strict=True):
+            if name not in cruise:
+                cruise[name] = max(get_spec(name).av_target_speeds)
+            out.append(partial(rule_policy, cruise_speed=cruise[name], lane_change_prob=0.0)(scene, rng))
+        return np.stack(out)
+
+    return policy
+
+
+def reference_policy(name: str, seed: int = 0) -> Callable[[], Policy]:
+    """A factory of the named reference policy (fresh random stream per call)."""
+    makers: dict[str, Callable[[], Policy]] = {
+        "random": lambda: _random(seed),
+        "idle": lambda: _constant(_IDLE),
+        "stop": lambda: _constant(_SLOWER),
+        "rule": lambda: _rule(seed),
+    }
+    if name not in makers:
+        raise ConfigError(f"unknown reference policy {name!r}: choose one of {', '.join(REFERENCE_POLICIES)}")
+    return makers[name]

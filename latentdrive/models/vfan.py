@@ -1,0 +1,176 @@
+"""The VFAN (value-function approximator network): a 3D-conv Q-network over the meta-actions.
+
+One body serves every input mode, so a comparison between modes differs only in what the
+body is fed (paper section V-C):
+
+- ``raw``: the stacked VelocityMap ``(4, T, H, W)``, the paper's baseline;
+- ``latent``: the frozen bottleneck network's pair latents ``(3, d)``;
+- ``latent-random``: the same encoder with untrained random weights, frozen;
+- ``end-to-end``: the encoder architecture trained from scratch by the Q-loss.
+
+Body::
+
+    Conv3d(c_in → c1, k=(1, k1, k1), s=(1, s1, s1))   per-frame features
+    Conv3d(c1 → c2, k=(kt, k2, k2), s=(1, s2, s2))     spatio-temporal
+    Conv3d(c2 → c3, k=(kt, k3, k3))
+    flatten → Linear(hidden) → Linear(n_actions)
+
+with ReLUs between, the layer pattern of the authors' Conv3D Q-net. Every kernel is
+clipped to the extent of its input on each axis, so the same definition accepts any
+``(C, T, H, W)``.
+
+How latents enter a 3D-conv body: the latents ``(3, d)`` have no spatial or temporal
+axes; their d coordinates are unordered features, not positions. Laying them out along a
+spatial axis would make the convolutions share weights between unrelated features, as if
+feature 5 were "next to" feature 6. They are therefore given as ``3·d`` channels of a
+``1 × 1 × 1`` volume: each convolution's kernel clips to ``1 × 1 × 1`` and becomes a
+dense layer over every latent feature. The body's depth, widths, activations and head
+stay those of the raw mode; only the input representation differs, which is the
+comparison the paper makes.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+from pydantic import Field
+from torch import Tensor, nn
+
+from latentdrive.actions import N_ACTIONS
+from latentdrive.config import Config
+from latentdrive.models.bottleneck import BottleneckNetwork
+
+__all__ = ["MODES", "LATENT_MODES", "Mode", "QNetwork", "VFANConfig"]
+
+Mode = Literal["raw", "latent", "latent-random", "end-to-end"]
+MODES: tuple[str, ...] = ("raw", "latent", "latent-random", "end-to-end")
+#: Modes whose encoder is frozen: replay stores its latents, encoded once at collection.
+LATENT_MODES: tuple[str, ...] = ("latent", "latent-random")
+
+
+class VFANConfig(Config):
+    """Architecture of the VFAN body (the same in every input mode)."""
+
+    channels: tuple[int, int, int] = Field((32, 64, 64), description="Output channels of the three Conv3d layers (the authors' 32, 64, 64).")
+    kernels: tuple[int, int, int] = Field((8, 4, 3), description="Spatial kernel sizes (cells) of the three layers, clipped to the input extent.")
+    strides: tuple[int, int] = Field((4, 2), description="Spatial strides of the first two layers (the third has stride 1).")
+    temporal_kernel: int = Field(3, ge=1, le=8, description="Temporal kernel (frames) of the second and third layers, clipped to T.")
+    hidden: int = Field(512, ge=8, le=4096, description="Width of the fully connected layer before the Q-values.")
+
+
+def _conv(c_in: int, c_out: int, size: tuple[int, int, int], kernel: tuple[int, int, int],
+          stride: tuple[int, int, int]) -> tuple[nn.Conv3d, tuple[int, int, int]]:
+    """A Conv3d whose kernel (and stride) are clipped to ``size``; returns it and its output size."""
+    k = tuple(min(kk, n) for kk, n in zip(kernel, size, strict=True))
+    s = tuple(min(ss, kk) for ss, kk in zip(stride, k, strict=True))
+    out = tuple((n - kk) // ss + 1 for n, kk, ss in zip(size, k, s, strict=True))
+    return nn.Conv3d(c_in, c_out, kernel_size=k, stride=s), (out[0], out[1], out[2])
+
+
+class VFANBody(nn.Module):
+    """The shared body: input ``(B, C, T, H, W)`` → Q-values ``(B, n_actions)``."""
+
+    def __init__(self, cfg: VFANConfig, input_shape: tuple[int, int, int, int], n_actions: int = N_ACTIONS) -> None:
+        super().__init__()
+        c, *size_ = input_shape
+        size = (size_[0], size_[1], size_[2])
+        kt = cfg.temporal_kernel
+        k1, k2, k3 = cfg.kernels
+        s1, s2 = cfg.strides
+        conv1, size = _conv(c, cfg.channels[0], size, (1, k1, k1), (1, s1, s1))
+        conv2, size = _conv(cfg.channels[0], cfg.channels[1], size, (kt, k2, k2), (1, s2, s2))
+        conv3, size = _conv(cfg.channels[1], cfg.channels[2], size, (kt, k3, k3), (1, 1, 1))
+        flat = cfg.channels[2] * size[0] * size[1] * size[2]
+        self.net = nn.Sequential(
+            conv1, nn.ReLU(), conv2, nn.ReLU(), conv3, nn.ReLU(), nn.Flatten(),
+            nn.Linear(flat, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, n_actions),
+        )
+
+    def forward(self, x: Tensor) -> Tensor:
+        return self.net(x)
+
+
+class QNetwork(nn.Module):
+    """A VFAN with its input mode: what replay stores → Q-values ``(B, n_actions)``.
+
+    Replay holds, per agent-observation, :attr:`stored_shape`:
+
+    - ``raw`` and ``end-to-end``: the observation ``(4, T, H, W)`` (kept as uint8 frames
+      by the replay buffer);
+    - ``latent`` and ``latent-random``: its latents ``(3, d)``, from :meth:`features`.
+
+    Args:
+        cfg: the body's architecture.
+        mode: the input mode.
+        observation_shape: ``(4, T, H, W)``.
+        encoder: the bottleneck network (latent modes and end-to-end); its parameters are
+            frozen in the latent modes and trained in end-to-end.
+    """
+
+    def __init__(self, cfg: VFANConfig, mode: Mode, observation_shape: tuple[int, int, int, int],
+                 encoder: BottleneckNetwork | None = None) -> None:
+        super().__init__()
+        if mode not in MODES:
+            raise ValueError(f"unknown mode {mode!r}: choose one of {', '.join(MODES)}")
+        if (mode == "raw") != (encoder is None):
+            raise ValueError(f"mode {mode!r} {'takes no' if mode == 'raw' else 'needs an'} encoder")
+        self.cfg = cfg
+        self.mode: Mode = mode
+        self.observation_shape = observation_shape
+        self.encoder = encoder
+        if encoder is not None:
+            if tuple(encoder.cfg.observation_shape) != tuple(observation_shape):
+                raise ValueError(f"the encoder takes observations {encoder.cfg.observation_shape}, "
+                                 f"not {observation_shape}")
+            if mode in LATENT_MODES:
+                encoder.eval().requires_grad_(False)
+            n_latent = encoder.latent_size
+            body_input: tuple[int, int, int, int] = (n_latent, 1, 1, 1)
+        else:
+            body_input = observation_shape
+        self.body = VFANBody(cfg, body_input)
+
+    @property
+    def stored_shape(self) -> tuple[int, ...]:
+        """Per-observation shape of what replay stores."""
+        if self.mode in LATENT_MODES:
+            assert self.encoder is not None
+            return self.encoder.latent_shape
+        return self.observation_shape
+
+    def trainable_parameters(self) -> list[nn.Parameter]:
+        """What the Q-loss updates: the body, plus the encoder in end-to-end mode."""
+        return [p for p in self.parameters() if p.requires_grad]
+
+    def parameter_count(self) -> dict[str, int]:
+        """Parameters of the body, of the encoder part that feeds it, and trainable in all."""
+        body = sum(p.numel() for p in self.body.parameters())
+        enc = 0
+        if self.encoder is not None:
+            ae = self.encoder.autoencoder
+            enc = sum(p.numel() for m in (ae.encoder_convs, ae.to_latent) for p in m.parameters())
+        return {"body": body, "encoder": enc, "trainable": sum(p.numel() for p in self.trainable_parameters())}
+
+    @torch.no_grad()
+    def features(self, obs: Tensor) -> Tensor:
+        """Observations ``(B, 4, T, H, W)`` → what replay stores for them (no gradient)."""
+        if self.mode in LATENT_MODES:
+            assert self.encoder is not None
+            return self.encoder.encode(obs)
+        return obs
+
+    def forward(self, stored: Tensor) -> Tensor:
+        """Stored inputs ``(B, *stored_shape)`` → Q-values ``(B, n_actions)``."""
+        if self.mode == "end-to-end":
+            assert self.encoder is not None
+            stored = self.encoder.encode(stored)
+        if self.mode != "raw":
+            stored = stored.reshape(stored.shape[0], -1, 1, 1, 1)
+        return self.body(stored)
+
+    def train(self, mode: bool = True) -> QNetwork:
+        super().train(mode)
+        if self.mode in LATENT_MODES and self.encoder is not None:
+            self.encoder.eval()  # frozen: no dropout/batch-norm statistics may move
+        return self

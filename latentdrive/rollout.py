@@ -1,0 +1,153 @@
+"""The one episode loop: a vector env and a policy → per-step records and episode outcomes.
+
+Collection, evaluation and training all drive environments through :func:`rollout`. It
+yields one :class:`StepRecord` per vector step, holding what a learner needs (the
+observation each agent acted on, its action, reward, next observation and per-agent end
+flags) and the :class:`~latentdrive.outcome.EpisodeOutcome` of every episode that ended on
+that step. The caller decides when to stop (a transition budget, an episode quota) by
+breaking out of the loop.
+
+A policy is any callable ``policy(PolicyInput) -> actions (num_envs, n_av)`` int.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+from typing import NamedTuple
+
+import numpy as np
+from numpy.typing import NDArray
+
+from latentdrive.env import AgentStep
+from latentdrive.outcome import EpisodeOutcome
+from latentdrive.vec import DrivingVecEnv
+
+__all__ = ["Policy", "PolicyInput", "StepRecord", "rollout", "scene_policy"]
+
+
+class PolicyInput(NamedTuple):
+    """What a policy sees at one vector step."""
+
+    #: ``(num_envs, n_av, 4, T, H, W)`` float32 stacked VelocityMaps.
+    obs: NDArray[np.float32]
+    #: ``(num_envs,)`` object array of the current Scenes (reference policies read them).
+    scenes: NDArray[np.object_]
+    #: ``(num_envs, n_av)`` bool: which AVs act on this step (the others are driven Idle).
+    active: NDArray[np.bool_]
+    #: ``(num_envs,)`` scenario names.
+    scenarios: NDArray[np.object_]
+
+
+Policy = Callable[[PolicyInput], NDArray[np.int64]]
+
+
+class StepRecord(NamedTuple):
+    """One vector step.
+
+    ``agents.acting[e, a]`` marks the agents with a transition on this step:
+    ``obs[e, a] --actions[e, a]--> next_obs[e, a]`` with reward ``agents.reward[e, a]``,
+    bootstrapped unless ``agents.terminated[e, a]``.
+    """
+
+    #: The observations the policy acted on, ``(num_envs, n_av, 4, T, H, W)``.
+    obs: NDArray[np.float32]
+    actions: NDArray[np.int64]
+    agents: AgentStep
+    #: The observation each transition leads to: the same episode's next observation,
+    #: or, for an environment whose episode ended on this step, its final observation.
+    next_obs: NDArray[np.float32]
+    #: ``(num_envs,)`` bool: the episode ended on this step (the env auto-reset).
+    ended: NDArray[np.bool_]
+    #: The observations the policy sees next (new episodes where ``ended``); this is
+    #: ``next_obs`` wherever ``ended`` is False.
+    obs_after: NDArray[np.float32]
+    #: Episodes that ended on this step, in environment order.
+    outcomes: list[EpisodeOutcome]
+
+
+class _Tally:
+    """Running per-episode sums of every environment slot."""
+
+    def __init__(self, num_envs: int, n_av: int) -> None:
+        self.steps = np.zeros(num_envs, dtype=np.int64)
+        self.returns = np.zeros((num_envs, n_av))
+        self.speed_sum = np.zeros(num_envs)
+        self.speed_n = np.zeros(num_envs, dtype=np.int64)
+        self.crashed = np.zeros((num_envs, n_av), dtype=bool)
+        self.arrived = np.zeros((num_envs, n_av), dtype=bool)
+        self.episode_index = np.zeros(num_envs, dtype=np.int64)
+
+    def add(self, agents: AgentStep, speeds: NDArray[np.float64], crashed: NDArray[np.bool_],
+            arrived: NDArray[np.bool_]) -> None:
+        self.steps += 1
+        self.returns += agents.reward
+        self.speed_sum += np.where(agents.acting, speeds, 0.0).sum(axis=1)
+        self.speed_n += agents.acting.sum(axis=1)
+        self.crashed |= crashed
+        self.arrived |= arrived
+
+    def close(self, e: int, scenario: str, seed: int) -> EpisodeOutcome:
+        out = EpisodeOutcome(
+            scenario=scenario, env_index=e, episode_index=int(self.episode_index[e]), seed=seed,
+            steps=int(self.steps[e]), agent_crashed=self.crashed[e].copy(), agent_arrived=self.arrived[e].copy(),
+            agent_return=self.returns[e].copy(),
+            mean_speed=float(self.speed_sum[e] / max(int(self.speed_n[e]), 1)),
+        )
+        self.steps[e] = 0
+        self.returns[e] = 0.0
+        self.speed_sum[e] = 0.0
+        self.speed_n[e] = 0
+        self.crashed[e] = False
+        self.arrived[e] = False
+        self.episode_index[e] += 1
+        return out
+
+
+def _agent_values(scenes: NDArray[np.object_], field: str) -> NDArray[np.generic]:
+    return np.stack([getattr(s, field)[s.agents] for s in scenes])
+
+
+def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[StepRecord]:
+    """Drive ``env`` with ``policy`` forever, from ``env.reset(seed=seed)``; break to stop.
+
+    Episode ``k`` of environment slot ``i`` is the same episode (same seed, same traffic)
+    whatever the policy, so two policies run from the same ``seed`` meet identical
+    episodes as long as they are compared slot by slot and episode by episode.
+    """
+    obs, info = env.reset(seed=seed)
+    active = info["agents"].active
+    tally = _Tally(env.num_envs, env.n_av)
+    while True:
+        scenes = info["scene"]
+        seeds = info["episode_seed"]
+        scenarios = info["scenario"]
+        actions = np.asarray(policy(PolicyInput(obs, scenes, active, scenarios)), dtype=np.int64)
+        obs_after, _, term, trunc, info = env.step(actions)
+        agents: AgentStep = info["agents"]
+        ended = term | trunc
+        fin = info["final_info"]
+        # The transition's scene is the ended episode's last one where the env reset.
+        last_scenes = np.where(ended, fin["scene"], info["scene"]) if ended.any() else info["scene"]
+        tally.add(agents, _agent_values(last_scenes, "speed").astype(np.float64),
+                  _agent_values(last_scenes, "crashed").astype(bool),
+                  _agent_values(last_scenes, "arrived").astype(bool))
+        next_obs = obs_after
+        outcomes: list[EpisodeOutcome] = []
+        if ended.any():
+            next_obs = obs_after.copy()
+            for e in np.flatnonzero(ended):
+                next_obs[e] = info["final_obs"][e]
+                outcomes.append(tally.close(int(e), str(scenarios[e]), int(seeds[e])))
+        yield StepRecord(obs, actions, agents, next_obs, ended, obs_after, outcomes)
+        obs = obs_after
+        active = np.where(ended[:, None], True, agents.active)
+
+
+def scene_policy(fn: Callable[[object, np.random.Generator], NDArray[np.int64]],
+                 rng: np.random.Generator) -> Policy:
+    """Adapt a per-Scene driver ``fn(scene, rng) -> (n_av,)`` (see :mod:`latentdrive.data.policies`)."""
+
+    def policy(inp: PolicyInput) -> NDArray[np.int64]:
+        return np.stack([fn(s, rng) for s in inp.scenes])
+
+    return policy
