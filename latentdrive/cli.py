@@ -14,6 +14,7 @@ from pathlib import Path
 
 from latentdrive.config import ConfigError, LatentDriveError, parse_override_args
 from latentdrive.data.cli import add_collect_parser
+from latentdrive.experiments.policy_cli import add_policy_parsers
 
 __all__ = ["main"]
 
@@ -248,6 +249,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("-q", "--quiet", action="store_true")
     _add_set(s, "study override, repeatable (--set collect.episodes=20 --set train.mixed_epochs=4)")
     s.set_defaults(func=_cmd_bnn_study)
+
+    add_policy_parsers(sub)
 
     s = sub.add_parser("figures", help="redraw the figures of a finished study")
     s.add_argument("kind", choices=["bnn"], help="which study")

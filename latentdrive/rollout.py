@@ -63,6 +63,8 @@ class StepRecord(NamedTuple):
     obs_after: NDArray[np.float32]
     #: Episodes that ended on this step, in environment order.
     outcomes: list[EpisodeOutcome]
+    #: ``(num_envs,)`` the Scenes the step led to (the ended episode's last where ``ended``).
+    scenes: NDArray[np.object_]
 
 
 class _Tally:
@@ -138,7 +140,7 @@ def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[St
             for e in np.flatnonzero(ended):
                 next_obs[e] = info["final_obs"][e]
                 outcomes.append(tally.close(int(e), str(scenarios[e]), int(seeds[e])))
-        yield StepRecord(obs, actions, agents, next_obs, ended, obs_after, outcomes)
+        yield StepRecord(obs, actions, agents, next_obs, ended, obs_after, outcomes, last_scenes)
         obs = obs_after
         active = np.where(ended[:, None], True, agents.active)
 

@@ -23,10 +23,10 @@ class DQNConfig(Config):
 
     gamma: float = Field(0.95, gt=0.0, lt=1.0, description="Discount per policy step (1 s at 1 Hz); the authors' 0.95.")
     lr: float = Field(5e-4, gt=0.0, le=1.0, description="Adam learning rate (the authors' 5e-4).")
-    batch_size: int = Field(64, ge=1, le=4096, description="Transitions per update.")
+    batch_size: int = Field(32, ge=1, le=4096, description="Transitions per update (the authors' 32).")
     buffer_size: int = Field(100_000, ge=100, le=5_000_000, description="Transitions kept in replay.")
     learning_starts: int = Field(2_000, ge=0, description="Agent-transitions collected before the first update.")
-    train_every: int = Field(4, ge=1, le=4096, description="Agent-transitions per learner update (the replay ratio is batch_size / train_every).")
+    train_every: int = Field(8, ge=1, le=4096, description="Agent-transitions per learner update (the replay ratio is batch_size / train_every).")
     target_update: int = Field(500, ge=1, description="Learner updates between hard copies of the online network into the target network.")
     double: bool = Field(True, description="Double DQN: the online network picks the next action, the target network values it.")
     huber_delta: float = Field(1.0, gt=0.0, description="Huber loss threshold (TD error units).")

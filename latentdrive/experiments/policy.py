@@ -1,0 +1,111 @@
+"""Evaluating trained policies beside the reference policies, comparing two runs, drawing an episode."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from latentdrive.bnn.checkpoint import atomic_write_text
+from latentdrive.evaluate.gif import save_episode_gif
+from latentdrive.evaluate.policies import reference_policy
+from latentdrive.evaluate.report import PolicyReport, compare, policy_report
+from latentdrive.evaluate.run import evaluate_policy
+from latentdrive.models.bottleneck import PAIR_CHANNELS
+from latentdrive.models.vfan import QNetwork
+from latentdrive.outcome import EpisodeOutcome
+from latentdrive.rl.policy import greedy_policy, load_policy_network
+from latentdrive.rollout import Policy, rollout
+from latentdrive.seeds import eval_reset_seed
+from latentdrive.vec import make_vec
+
+__all__ = ["EvaluationSet", "evaluate_many", "pairs_to_channels", "save_policy_gif"]
+
+
+class EvaluationSet:
+    """The definition of an evaluation: which episodes, on which backend."""
+
+    def __init__(self, scenarios: Sequence[str], episodes: int, envs: int, backend: str, seed_offset: int,
+                 observation: dict[str, Any] | None = None) -> None:
+        self.scenarios, self.episodes, self.envs = list(scenarios), episodes, min(envs, episodes)
+        self.backend, self.seed_offset = backend, seed_offset
+        self.observation = observation or {}
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"scenarios": self.scenarios, "episodes_per_scenario": self.episodes, "envs": self.envs,
+                "backend": self.backend, "reset_seed": eval_reset_seed(self.seed_offset),
+                "seed_offset": self.seed_offset}
+
+    def run(self, make_policy: Callable[[], Policy], progress: Callable[[int], None] | None = None) -> list[EpisodeOutcome]:
+        kw: dict[str, Any] = {"observation": self.observation} if self.observation else {}
+        return evaluate_policy(make_policy, self.scenarios, self.episodes, envs=self.envs, backend=self.backend,
+                               seed_offset=self.seed_offset, progress=progress, **kw)
+
+
+def evaluate_many(runs: Sequence[str], references: Sequence[str], eval_set: EvaluationSet,
+                  device: torch.device, progress: Callable[[int], None] | None = None,
+                  ) -> tuple[dict[str, PolicyReport], dict[str, list[EpisodeOutcome]]]:
+    """Reports and raw outcomes of every run and reference policy on the same episodes."""
+    makers: dict[str, Callable[[], Policy]] = {}
+    for run in runs:
+        net, cfg = load_policy_network(run, device)
+        if cfg.observation.model_dump() != {**cfg.observation.model_dump(), **eval_set.observation}:
+            raise ValueError(f"{run}: trained on another observation config than the evaluation's")
+        makers[run] = greedy_policy(net, device)
+    for name in references:
+        makers[name] = reference_policy(name)
+    outcomes = {name: eval_set.run(make, progress) for name, make in makers.items()}
+    return {name: policy_report(o) for name, o in outcomes.items()}, outcomes
+
+
+def paired(outcomes: dict[str, list[EpisodeOutcome]], a: str, b: str) -> dict[str, Any]:
+    """Paired tests of ``a`` against ``b`` (same episodes), as JSON."""
+    return {scope: {k: t.as_dict() for k, t in tests.items()} for scope, tests in compare(outcomes[a], outcomes[b]).items()}
+
+
+def write_json(path: str | Path, data: dict[str, Any]) -> Path:
+    import json
+
+    p = Path(path)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    return atomic_write_text(p, json.dumps(data, indent=1, allow_nan=False) + "\n")
+
+
+def pairs_to_channels(pairs: torch.Tensor) -> np.ndarray:
+    """Reconstructed pairs ``(3, 2, T, H, W)`` → channels ``(4, T, H, W)`` (HV, AV, RL, MV).
+
+    AV appears in all three pairs; the mean of its three reconstructions is shown.
+    """
+    p = pairs.detach().cpu().numpy()
+    out = np.zeros((4, *p.shape[2:]), dtype=np.float32)
+    for k, (first, _) in enumerate(PAIR_CHANNELS):
+        out[first] = p[k, 0]
+    out[PAIR_CHANNELS[0][1]] = p[:, 1].mean(axis=0)
+    return out
+
+
+def save_policy_gif(path: str | Path, net: QNetwork | None, make_policy: Callable[[], Policy], scenario: str,
+                    eval_set: EvaluationSet, title: str, device: torch.device) -> Path:
+    """One evaluation episode of ``scenario`` as a GIF, seen by agent 0; with the BNN's
+    reconstruction when ``net`` has a trained encoder (latent modes)."""
+    kw: dict[str, Any] = {"observation": eval_set.observation} if eval_set.observation else {}
+    vec = make_vec(scenario, 1, backend=eval_set.backend, **kw)
+    scenes: list[Any] = []
+    observations: list[np.ndarray] = []
+    for rec in rollout(vec, make_policy(), seed=eval_reset_seed(eval_set.seed_offset)):
+        scenes.append(rec.scenes[0])
+        observations.append(rec.next_obs[0])
+        if rec.ended[0]:
+            break
+    recon = None
+    if net is not None and net.mode == "latent" and net.encoder is not None:
+        with torch.no_grad():
+            x = torch.from_numpy(np.stack([o[0] for o in observations])).to(device)
+            pairs = net.encoder.decode(net.encoder.encode(x))
+        recon = [pairs_to_channels(p) for p in pairs]
+    cfg = vec.configs[0].observation
+    vec.close()
+    return save_episode_gif(path, scenes, observations, cfg, agent=0, reconstructions=recon, title=title)

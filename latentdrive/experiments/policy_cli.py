@@ -1,0 +1,159 @@
+"""``latentdrive train-policy`` and ``latentdrive evaluate``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from typing import Any
+
+from latentdrive.config import ConfigError, merge_overrides, parse_override_args
+
+__all__ = ["add_policy_parsers"]
+
+
+def _say(line: str) -> None:
+    print(line, file=sys.stderr)
+
+
+def _split(text: str) -> list[str]:
+    return [s.strip() for s in text.split(",") if s.strip()]
+
+
+def _cmd_train_policy(args: argparse.Namespace) -> int:
+    from latentdrive.config import validate
+    from latentdrive.rl.config import PolicyTrainConfig
+    from latentdrive.rl.policy import read_run_config
+    from latentdrive.rl.train import train_policy
+
+    base: dict[str, Any] = read_run_config(args.run)["train"] if args.resume else {}
+    flags = {"mode": args.mode, "bnn": args.bnn, "steps": args.steps, "seed": args.seed, "envs": args.envs,
+             "backend": args.backend, "init_from": args.init_from}
+    data = merge_overrides(base, {k: v for k, v in flags.items() if v is not None})
+    if args.scenarios:
+        data["scenarios"] = _split(args.scenarios)
+    data = merge_overrides(data, parse_override_args(args.overrides))
+    cfg = validate(PolicyTrainConfig, data)
+    result = train_policy(cfg, args.run, resume=args.resume, progress=not args.quiet, say=_say)
+    ev = result.get("evaluation") or {}
+    mixed = ev.get("mixed")
+    line = f"done: {result['transitions']} agent-transitions, {result['updates']} updates, {result['episodes']} episodes"
+    if mixed:
+        line += (f"; held-out failure rate {mixed['failure_rate']['rate']:.3f}, crash rate "
+                 f"{mixed['crash_rate']['rate']:.3f} over {mixed['episodes']} episodes")
+    print(line)
+    return 0
+
+
+def _cmd_evaluate(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from latentdrive.bnn.train import resolve_device
+    from latentdrive.evaluate.policies import REFERENCE_POLICIES, reference_policy
+    from latentdrive.evaluate.report import format_compare, format_table
+    from latentdrive.experiments.policy import EvaluationSet, evaluate_many, paired, save_policy_gif, write_json
+    from latentdrive.rl.policy import greedy_policy, load_policy_network, read_run_config
+    from latentdrive.scenarios import SCENARIOS, get_spec
+
+    runs = [args.run] if args.run else []
+    if args.compare:
+        if not runs:
+            raise ConfigError("--compare needs a RUN to compare with")
+        runs.append(args.compare)
+    configs = [read_run_config(r) for r in runs]  # fail before any work
+    references = [] if args.policy in ("", "none") else _split(args.policy)
+    for name in references:
+        if name not in REFERENCE_POLICIES:
+            raise ConfigError(f"unknown reference policy {name!r}: choose from {', '.join(REFERENCE_POLICIES)}")
+    if not runs and not references:
+        raise ConfigError("nothing to evaluate: give a RUN or --policy")
+    if args.scenarios:
+        scenarios = _split(args.scenarios)
+    elif configs:
+        scenarios = list(configs[0]["train"]["scenarios"])
+    else:
+        scenarios = list(SCENARIOS)
+    for name in scenarios:
+        get_spec(name)
+    if args.episodes < 1:
+        raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
+    if args.envs < 1:
+        raise ConfigError(f"--envs must be at least 1, got {args.envs}")
+    observations = [c["train"]["observation"] for c in configs]
+    if any(o != observations[0] for o in observations):
+        raise ConfigError("the runs use different observation configs; evaluate them separately")
+    eval_set = EvaluationSet(scenarios, args.episodes, args.envs, args.backend, args.seed_offset,
+                             observation=observations[0] if observations else None)
+    device = resolve_device(args.device)
+    total = args.episodes * len(scenarios) * (len(runs) + len(references))
+    with tqdm(total=total, unit="ep", disable=args.quiet, desc="evaluate", dynamic_ncols=True) as bar:
+        reports, outcomes = evaluate_many(runs, references, eval_set, device, progress=bar.update)
+    print(f"{args.episodes} evaluation episodes per scenario ({eval_set.envs} envs, reset seed "
+          f"{eval_set.as_dict()['reset_seed']}, {args.backend} backend); failure = crashed or mission not "
+          "completed in time. [95% Wilson intervals]")
+    print(format_table(reports))
+    comparison = None
+    if args.compare:
+        comparison = paired(outcomes, runs[0], runs[1])
+        from latentdrive.evaluate.report import compare
+
+        print(format_compare(compare(outcomes[runs[0]], outcomes[runs[1]]), names=(runs[0], runs[1])))
+    if args.json:
+        head = runs[0] if runs else references[0]
+        doc: dict[str, Any] = {
+            **reports[head].as_dict(), "policy": head,
+            "config": {"evaluation": eval_set.as_dict(), "runs": {r: c["train"] for r, c in zip(runs, configs, strict=True)}},
+            "policies": {name: rep.as_dict() for name, rep in reports.items()},
+        }
+        if comparison is not None:
+            doc["compare"] = {"a": runs[0], "b": runs[1], "tests": comparison}
+        print(f"wrote {write_json(args.json, doc)}")
+    if args.gif:
+        if runs:
+            net, _ = load_policy_network(runs[0], device)
+            path = save_policy_gif(args.gif, net, greedy_policy(net, device), scenarios[0], eval_set,
+                                   f"{runs[0]} ({net.mode}) on {scenarios[0]}", device)
+        else:
+            path = save_policy_gif(args.gif, None, reference_policy(references[0]), scenarios[0], eval_set,
+                                   f"{references[0]} on {scenarios[0]}", device)
+        print(f"wrote {path}")
+    return 0
+
+
+def add_policy_parsers(sub: Any) -> None:
+    """Add ``train-policy`` and ``evaluate`` to the CLI's sub-parsers."""
+    s = sub.add_parser("train-policy", help="train a driving policy (multi-agent double DQN on a VFAN)",
+                       description="Train a policy in RUN. Interrupt it at any time; --resume continues from the "
+                       "last checkpoint and ends with the weights an uninterrupted run would have.")
+    s.add_argument("run", help="run directory (config.json, checkpoint, metrics.csv, eval.csv, tb/)")
+    s.add_argument("--mode", choices=["raw", "latent", "latent-random", "end-to-end"], default=None,
+                   help="input representation (default latent)")
+    s.add_argument("--bnn", default=None, help="BNN run directory (train-bnn); required by --mode latent")
+    s.add_argument("--scenarios", default="", help="comma-separated scenarios (default merge); a mixture plays each on its share of the envs")
+    s.add_argument("--steps", type=int, default=None, help="budget in agent-transitions (default 50000)")
+    s.add_argument("--seed", type=int, default=None, help="training seed (default 0)")
+    s.add_argument("--envs", type=int, default=None, help="environments stepped together (default 16)")
+    s.add_argument("--backend", choices=["fast", "highway"], default=None, help="simulator (default fast)")
+    s.add_argument("--init-from", default=None, help="start from another policy run's weights (fine-tuning)")
+    s.add_argument("--resume", action="store_true", help="continue the run in RUN (a larger --steps extends it)")
+    s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
+    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override, repeatable (--set dqn.lr=1e-3 --set segment=5000 --set vfan.hidden=256)")
+    s.set_defaults(func=_cmd_train_policy)
+
+    s = sub.add_parser("evaluate", help="failure, crash and success rates of policies on held-out episodes",
+                       description="Evaluate a trained run and the reference policies on the same held-out "
+                       "episodes (seeds training never uses), per scenario and mixed, with 95%% intervals.")
+    s.add_argument("run", nargs="?", default="", help="policy run directory (optional)")
+    s.add_argument("--policy", default="random,idle,stop,rule",
+                   help="reference policies to include, comma-separated, or 'none' (default all four)")
+    s.add_argument("--scenarios", default="", help="comma-separated (default: the run's training scenarios, or all five)")
+    s.add_argument("--episodes", type=int, default=100, help="episodes per scenario (default 100)")
+    s.add_argument("--envs", type=int, default=16, help="environments per scenario; part of the evaluation set's definition (default 16)")
+    s.add_argument("--backend", choices=["fast", "highway"], default="fast")
+    s.add_argument("--seed-offset", type=int, default=0, help="another fixed evaluation set (default 0)")
+    s.add_argument("--json", default="", help="write the results to this JSON file")
+    s.add_argument("--compare", default="", help="a second run: paired differences and McNemar's exact test")
+    s.add_argument("--gif", default="", help="draw one episode of the first scenario to this GIF")
+    s.add_argument("--device", default="auto")
+    s.add_argument("-q", "--quiet", action="store_true")
+    s.set_defaults(func=_cmd_evaluate)

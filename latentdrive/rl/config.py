@@ -1,0 +1,57 @@
+"""The configuration of a policy training run (``latentdrive train-policy``)."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import Field, field_validator, model_validator
+
+from latentdrive.config import Config, ObservationConfig
+from latentdrive.models.vfan import MODES, Mode, VFANConfig
+from latentdrive.rl.dqn import DQNConfig
+from latentdrive.scenarios import get_spec
+
+__all__ = ["PolicyTrainConfig"]
+
+
+class PolicyTrainConfig(Config):
+    """Everything that defines a policy training run; saved in the run's config.json."""
+
+    mode: Mode = Field("latent", description=f"Input representation: {', '.join(MODES)}.")
+    scenarios: tuple[str, ...] = Field(("merge",), min_length=1, description="Scenarios to train on. Environment slot i plays scenarios[i % len]: every vector step holds an equal mix.")
+    steps: int = Field(50_000, ge=1, le=10**10, description="Budget in agent-transitions (one AV's one policy step), so budgets compare across AV counts.")
+    seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of the weights, exploration, replay sampling and training episodes.")
+    envs: int = Field(16, ge=1, le=4096, description="Environments stepped together.")
+    backend: Literal["fast", "highway"] = Field("fast", description="Simulator backend.")
+    bnn: str | None = Field(None, description="BNN run directory: the frozen encoder of mode 'latent'; for 'latent-random' and 'end-to-end' only its architecture is used (default architecture when omitted).")
+    init_from: str | None = Field(None, description="Policy run directory whose final weights initialize this run (fine-tuning, transfer learning).")
+    observation: ObservationConfig = Field(default_factory=ObservationConfig, description="VelocityMap settings; must match the BNN's input.")
+    dqn: DQNConfig = Field(default_factory=DQNConfig, description="Q-learning hyperparameters.")
+    vfan: VFANConfig = Field(default_factory=VFANConfig, description="VFAN body architecture.")
+    segment: int = Field(10_000, ge=1, description="Agent-transitions between checkpoints. Every environment is reset at a segment boundary, from a seed fixed by (seed, segment index), so a resumed run continues exactly as an uninterrupted one.")
+    eval_every: int = Field(2, ge=0, description="Evaluate on held-out seeds every this many segments, and at the end (0: only at the end).")
+    eval_episodes: int = Field(30, ge=1, le=100_000, description="Evaluation episodes per scenario at each periodic evaluation.")
+    device: str = Field("auto", description="'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'.")
+    threads: int = Field(1, ge=0, le=1024, description="CPU threads for torch (0: torch's default). One avoids oversubscribing the cores the simulator also uses; results are only bitwise reproducible at the same count.")
+
+    @field_validator("scenarios")
+    @classmethod
+    def _known(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        for name in v:
+            get_spec(name)  # raises ConfigError naming the scenario
+        return v
+
+    @field_validator("device")
+    @classmethod
+    def _check_device(cls, v: str) -> str:
+        if not (v in ("auto", "cpu", "cuda") or (v.startswith("cuda:") and v[5:].isdigit())):
+            raise ValueError(f"expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {v!r}")
+        return v
+
+    @model_validator(mode="after")
+    def _check_mode(self) -> PolicyTrainConfig:
+        if self.mode == "latent" and not self.bnn:
+            raise ValueError("mode 'latent' needs a trained BNN: give bnn (train-policy --bnn RUN)")
+        if self.mode == "raw" and self.bnn:
+            raise ValueError("mode 'raw' takes no BNN")
+        return self

@@ -1,0 +1,164 @@
+"""Building a Q-network for a run, acting with it, and loading a trained one.
+
+A policy run directory holds ``config.json`` (the resolved :class:`PolicyTrainConfig`, the
+encoder's architecture and the parameter counts) and ``checkpoint.safetensors``, whose
+model tensors include the encoder: a run is self-contained once trained.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from numpy.typing import NDArray
+
+from latentdrive.actions import N_ACTIONS
+from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
+from latentdrive.bnn.train import load_trained_bottleneck
+from latentdrive.config import ConfigError, validate
+from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
+from latentdrive.models.vfan import QNetwork
+from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rollout import Policy, PolicyInput
+
+__all__ = [
+    "CHECKPOINT",
+    "CONFIG",
+    "FeatureCache",
+    "build_network",
+    "encoder_config",
+    "greedy_policy",
+    "load_policy_network",
+    "read_run_config",
+]
+
+CHECKPOINT = "checkpoint.safetensors"
+CONFIG = "config.json"
+
+
+def encoder_config(cfg: PolicyTrainConfig) -> BottleneckConfig | None:
+    """The encoder architecture a run uses (None in raw mode)."""
+    if cfg.mode == "raw":
+        return None
+    if cfg.bnn:
+        ckpt = Path(cfg.bnn) / CHECKPOINT
+        if not ckpt.exists():
+            raise ConfigError(f"--bnn {cfg.bnn}: no BNN checkpoint there ({ckpt} is missing)")
+        saved = read_checkpoint(ckpt)[1]["config"]
+        if not isinstance(saved, dict) or "model" not in saved:
+            raise CheckpointError(f"{ckpt}: not a BNN checkpoint (no model config)")
+        enc = validate(BottleneckConfig, saved["model"])
+    else:
+        enc = BottleneckConfig.for_observation(cfg.observation)
+    want = cfg.observation.shape
+    if enc.observation_shape != want:
+        raise ConfigError(f"the BNN takes observations {enc.observation_shape} but the env gives {want}: "
+                          "train-policy --set observation.KEY=VALUE to match it, or another BNN")
+    return enc
+
+
+def build_network(cfg: PolicyTrainConfig, encoder_cfg: BottleneckConfig | None,
+                  load_bnn_weights: bool = True) -> QNetwork:
+    """A freshly initialized network for ``cfg`` (seeded), with the BNN's trained weights in
+    mode ``latent`` when ``load_bnn_weights``."""
+    torch.manual_seed(cfg.seed)
+    encoder: BottleneckNetwork | None = None
+    if encoder_cfg is not None:
+        if cfg.mode == "latent" and load_bnn_weights:
+            assert cfg.bnn is not None
+            encoder = load_trained_bottleneck(cfg.bnn)
+        else:
+            encoder = BottleneckNetwork(encoder_cfg)
+    return QNetwork(cfg.vfan, cfg.mode, cfg.observation.shape, encoder)
+
+
+class FeatureCache:
+    """What replay stores for the latest observations, computed once.
+
+    Latent modes encode each observation with the frozen encoder once; the learner and
+    the acting policy both read the cached result for the same array.
+    """
+
+    def __init__(self, net: QNetwork, device: torch.device) -> None:
+        self.net, self.device = net, device
+        self._key: NDArray[np.float32] | None = None
+        self._value: torch.Tensor | None = None
+
+    def __call__(self, obs: NDArray[np.float32]) -> torch.Tensor:
+        """Features ``(num_envs, n_av, *stored_shape)`` of ``obs`` ``(num_envs, n_av, 4, T, H, W)``."""
+        if obs is not self._key:
+            flat = torch.from_numpy(obs.reshape(-1, *obs.shape[2:])).to(self.device)
+            self._value = self.net.features(flat).reshape(*obs.shape[:2], *self.net.stored_shape)
+            self._key = obs
+        assert self._value is not None
+        return self._value
+
+    def encode(self, obs: NDArray[np.float32]) -> torch.Tensor:
+        """Features of observations ``(k, 4, T, H, W)`` outside the cache."""
+        return self.net.features(torch.from_numpy(obs).to(self.device))
+
+
+def q_values(net: QNetwork, feats: torch.Tensor) -> torch.Tensor:
+    """Q-values ``(num_envs, n_av, n_actions)`` of features ``(num_envs, n_av, ...)``."""
+    with torch.no_grad():
+        flat = feats.reshape(-1, *feats.shape[2:])
+        return net(flat).reshape(*feats.shape[:2], -1)
+
+
+def epsilon_greedy(net: QNetwork, cache: FeatureCache, rng: np.random.Generator,
+                   eps: Callable[[], float]) -> Policy:
+    """ε-greedy over the cached features. Draws the same random numbers every step,
+    whoever is active, so the stream does not depend on the episodes' course."""
+
+    def policy(inp: PolicyInput) -> NDArray[np.int64]:
+        greedy = q_values(net, cache(inp.obs)).argmax(dim=-1).cpu().numpy()
+        explore = rng.random(greedy.shape) < eps()
+        random = rng.integers(0, N_ACTIONS, size=greedy.shape)
+        return np.where(explore, random, greedy).astype(np.int64)
+
+    return policy
+
+
+def greedy_policy(net: QNetwork, device: torch.device) -> Callable[[], Policy]:
+    """A factory of the network's greedy policy (for evaluation)."""
+
+    def make() -> Policy:
+        cache = FeatureCache(net, device)
+
+        def policy(inp: PolicyInput) -> NDArray[np.int64]:
+            return q_values(net, cache(inp.obs)).argmax(dim=-1).cpu().numpy().astype(np.int64)
+
+        return policy
+
+    return make
+
+
+def read_run_config(run_dir: str | Path) -> dict[str, Any]:
+    """A policy run's config.json, or a one-line error when it is not a policy run."""
+    path = Path(run_dir) / CONFIG
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{run_dir}: not a policy run (no {CONFIG})") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ConfigError(f"{path}: unreadable ({str(exc).splitlines()[0]})") from None
+    if not isinstance(data, dict) or data.get("kind") != "policy" or "train" not in data:
+        raise ConfigError(f"{path}: not a policy run's config")
+    return data
+
+
+def load_policy_network(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple[QNetwork, PolicyTrainConfig]:
+    """The trained network of a policy run (eval mode) and the run's config."""
+    data = read_run_config(run_dir)
+    cfg = validate(PolicyTrainConfig, data["train"])
+    ckpt = Path(run_dir) / CHECKPOINT
+    if not ckpt.exists():
+        raise CheckpointError(f"{run_dir}: no checkpoint yet ({CHECKPOINT} is missing); train it first")
+    enc = validate(BottleneckConfig, data["encoder"]) if data.get("encoder") else None
+    net = build_network(cfg, enc, load_bnn_weights=False)
+    load_checkpoint(ckpt, net)
+    return net.to(device).eval(), cfg

@@ -1,0 +1,329 @@
+"""Training a policy: multi-agent double DQN over a vector env, resumable bit for bit.
+
+The run is cut into segments of ``cfg.segment`` agent-transitions. Each segment resets
+every environment from a seed fixed by ``(seed, segment index)`` and ends with a
+checkpoint: model, target network, optimizer, counters, the numpy generator and the
+replay. The simulator's state is never saved: it is recreated from the segment's seed.
+A run resumed from any checkpoint therefore takes exactly the steps an uninterrupted run
+takes, and ends with the same weights. Episodes still running at a segment boundary are
+cut off like a time limit (their last transitions bootstrap), which costs a little
+experience per segment and nothing in correctness.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from safetensors.numpy import load_file as np_load_file
+from safetensors.numpy import save as np_save
+
+from latentdrive.bnn.checkpoint import CheckpointError, atomic_write_bytes, atomic_write_text, load_checkpoint, save_checkpoint
+from latentdrive.bnn.train import resolve_device, torch_settings
+from latentdrive.config import ConfigError, config_hash
+from latentdrive.evaluate.report import policy_report
+from latentdrive.evaluate.run import evaluate_policy
+from latentdrive.models.vfan import LATENT_MODES, QNetwork
+from latentdrive.outcome import EpisodeOutcome
+from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.dqn import epsilon, update
+from latentdrive.rl.policy import (
+    CHECKPOINT,
+    CONFIG,
+    FeatureCache,
+    build_network,
+    encoder_config,
+    epsilon_greedy,
+    greedy_policy,
+    load_policy_network,
+    read_run_config,
+)
+from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Replay
+from latentdrive.rollout import StepRecord, rollout
+from latentdrive.runlock import dir_lock
+from latentdrive.seeds import train_reset_seed
+from latentdrive.vec import make_vec
+
+__all__ = ["TrainResult", "train_policy"]
+
+REPLAY = "replay.safetensors"
+METRICS = "metrics.csv"
+EVALS = "eval.csv"
+_METRIC_COLUMNS = ("transitions", "updates", "episodes", "epsilon", "loss", "train_failure_rate",
+                   "train_crash_rate", "transitions_per_s", "elapsed_s")
+_EVAL_COLUMNS = ("transitions", "scenario", "episodes", "failure_rate", "crash_rate", "success_rate", "mean_return")
+
+
+class TrainResult(dict[str, Any]):
+    """Final counters and the last evaluation (a plain dict, JSON-serializable)."""
+
+
+def _make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> ObservationStore:
+    cap = cfg.dqn.buffer_size
+    if net.mode in LATENT_MODES:
+        # Each transition adds at most two observations (next, and a new episode's first).
+        return LatentStore(2 * cap + 2 * n_slots, net.stored_shape)
+    t = cfg.observation.frames
+    return FrameStore(2 * cap + (2 * t + 1) * n_slots, cfg.observation.shape)
+
+
+class _Learner:
+    """Replay writing and updates; one instance per run."""
+
+    def __init__(self, cfg: PolicyTrainConfig, net: QNetwork, device: torch.device, n_slots: int) -> None:
+        self.cfg, self.net, self.device = cfg, net, device
+        self.target = copy.deepcopy(net).requires_grad_(False)
+        self.optimizer = torch.optim.Adam(net.trainable_parameters(), lr=cfg.dqn.lr)
+        self.replay = Replay(cfg.dqn.buffer_size, _make_store(net, cfg, n_slots))
+        self.rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x51]))
+        self.transitions = 0
+        self.updates = 0
+        self.episodes = 0
+        self.losses: list[float] = []
+
+    def eps(self) -> float:
+        return epsilon(self.cfg.dqn, self.transitions, self.cfg.steps)
+
+    def start_segment(self, obs_feats: torch.Tensor) -> np.ndarray:
+        """Store every agent's first observation; ids ``(num_envs, n_av)``."""
+        e, a = obs_feats.shape[:2]
+        flat = obs_feats.reshape(e * a, *obs_feats.shape[2:]).cpu().numpy()
+        return self.replay.store.add(flat, np.full(e * a, -1, dtype=np.int64)).reshape(e, a)
+
+    def record(self, rec: StepRecord, cur: np.ndarray, cache: FeatureCache) -> np.ndarray:
+        """Store the step's transitions; returns the agents' current observation ids."""
+        ag = rec.agents
+        ei, ai = np.nonzero(ag.acting)
+        after = cache(rec.obs_after)  # encoded once: the policy reuses it on the next step
+        nxt = after[ei, ai]
+        ended_rows = rec.ended[ei]
+        if ended_rows.any():
+            # An ended episode's transitions lead to its final observation, not the new
+            # episode's first one.
+            nxt = nxt.clone()
+            nxt[torch.from_numpy(ended_rows)] = cache.encode(rec.next_obs[ei[ended_rows], ai[ended_rows]])
+        store = self.replay.store
+        next_ids = store.add(nxt.cpu().numpy(), cur[ei, ai])
+        # terminated (crash, mission done) does not bootstrap; cut-off agents (another AV
+        # crashed, time ran out, the segment ended) do: see rl.dqn.td_targets.
+        self.replay.add(cur[ei, ai], rec.actions[ei, ai], ag.reward[ei, ai], next_ids, ag.terminated[ei, ai])
+        cur = cur.copy()
+        cur[ei, ai] = next_ids
+        for e in np.flatnonzero(rec.ended):
+            flat = after[e].cpu().numpy()
+            cur[e] = store.add(flat, np.full(len(flat), -1, dtype=np.int64))
+        self.transitions += len(ei)
+        self.episodes += len(rec.outcomes)
+        return cur
+
+    def learn(self) -> None:
+        d = self.cfg.dqn
+        owed = (self.transitions - d.learning_starts) // d.train_every - self.updates
+        for _ in range(max(0, owed)):
+            batch = self.replay.sample(self.rng, d.batch_size, self.device)
+            self.losses.append(update(self.net, self.target, self.optimizer, batch, d))
+            self.updates += 1
+            if self.updates % d.target_update == 0:
+                self.target.load_state_dict(self.net.state_dict())
+
+    # ---- checkpoints ---------------------------------------------------------------
+
+    def save(self, run_dir: Path, segment: int) -> None:
+        arrays = {k: np.ascontiguousarray(v) for k, v in self.replay.state().items()}
+        # The replay first: a checkpoint is only valid beside the replay it names.
+        atomic_write_bytes(run_dir / REPLAY, np_save(arrays, metadata={"replay_added": str(self.replay.added)}))
+        save_checkpoint(
+            run_dir / CHECKPOINT, self.net, self.optimizer, step=self.updates, epoch=segment,
+            config=self.cfg.model_dump(mode="json"), numpy_generator=self.rng,
+            extra={"transitions": self.transitions, "updates": self.updates, "episodes": self.episodes,
+                   "segment": segment, "replay_added": self.replay.added},
+            extra_tensors={f"target/{k}": v for k, v in self.target.state_dict().items()},
+        )
+
+    def load(self, run_dir: Path) -> int:
+        """Restore from the run's checkpoint; returns the next segment index."""
+        info = load_checkpoint(run_dir / CHECKPOINT, self.net, self.optimizer, numpy_generator=self.rng)
+        target_sd = {k.removeprefix("target/"): v for k, v in info.extra_tensors.items() if k.startswith("target/")}
+        try:
+            self.target.load_state_dict(target_sd, strict=True)
+        except RuntimeError:
+            raise CheckpointError(f"{run_dir / CHECKPOINT}: target network does not match the model") from None
+        path = run_dir / REPLAY
+        try:
+            arrays = np_load_file(str(path))
+            self.replay.load_state(arrays)
+        except FileNotFoundError:
+            raise CheckpointError(f"{path}: missing; the run cannot resume without its replay") from None
+        except (ValueError, KeyError, OSError) as exc:
+            raise CheckpointError(f"{path}: unusable replay ({str(exc).splitlines()[0]})") from None
+        if self.replay.added != int(info.extra["replay_added"]):
+            raise CheckpointError(f"{path}: replay does not belong to the checkpoint (written by another save)")
+        self.transitions = int(info.extra["transitions"])
+        self.updates = int(info.extra["updates"])
+        self.episodes = int(info.extra["episodes"])
+        return int(info.extra["segment"]) + 1
+
+
+def _write_config(run_dir: Path, cfg: PolicyTrainConfig, net: QNetwork, enc: Any) -> None:
+    data = {
+        "kind": "policy",
+        "train": cfg.model_dump(mode="json"),
+        "encoder": None if enc is None else enc.model_dump(mode="json"),
+        "parameters": net.parameter_count(),
+        "config_hash": config_hash(cfg),
+    }
+    atomic_write_text(run_dir / CONFIG, json.dumps(data, indent=1) + "\n")
+
+
+def _check_resume(run_dir: Path, cfg: PolicyTrainConfig) -> None:
+    saved = read_run_config(run_dir)["train"]
+    now = cfg.model_dump(mode="json")
+    # The budget may grow on resumption; everything else must match.
+    changed = sorted(k for k in now if k != "steps" and saved.get(k) != now[k])
+    if changed:
+        raise ConfigError(f"{run_dir}: --resume with a different config ({', '.join(changed)} changed)")
+
+
+class _Log:
+    """metrics.csv, eval.csv and TensorBoard scalars; rows past a resumed checkpoint are dropped."""
+
+    def __init__(self, run_dir: Path, resume_at: int | None) -> None:
+        self.files = {}
+        for name, cols in ((METRICS, _METRIC_COLUMNS), (EVALS, _EVAL_COLUMNS)):
+            path = run_dir / name
+            rows: list[dict[str, str]] = []
+            if resume_at is not None and path.exists():
+                with path.open(newline="") as f:
+                    rows = [r for r in csv.DictReader(f) if r.get("transitions", "").isdigit()
+                            and int(r["transitions"]) <= resume_at]
+            text = ",".join(cols) + "\n" + "".join(",".join(r.get(c, "") for c in cols) + "\n" for r in rows)
+            atomic_write_text(path, text)
+            fh = path.open("a", newline="")
+            self.files[name] = (fh, csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore"))
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_at or 0)
+
+    def write(self, name: str, row: dict[str, Any]) -> None:
+        fh, w = self.files[name]
+        w.writerow(row)
+        fh.flush()
+        prefix = "train" if name == METRICS else f"eval/{row.get('scenario', '')}"
+        for k, v in row.items():
+            if isinstance(v, float | int) and k != "transitions" and v == v:
+                self.tb.add_scalar(f"{prefix}/{k}", v, int(row["transitions"]))
+
+    def close(self) -> None:
+        for fh, _ in self.files.values():
+            fh.close()
+        self.tb.close()
+
+
+def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> dict[str, Any]:
+    net.eval()
+    outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenarios, cfg.eval_episodes,
+                               envs=min(16, cfg.eval_episodes), backend=cfg.backend,
+                               observation=cfg.observation.model_dump())
+    net.train()
+    return policy_report(outcomes).as_dict()
+
+
+def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = False,
+                 progress: bool = True, say: Callable[[str], None] = print) -> TrainResult:
+    """Train (or, with ``resume``, continue) a policy run in ``run_dir``."""
+    root = Path(run_dir)
+    if not resume and (root / CHECKPOINT).exists():
+        raise ConfigError(f"{root}: already holds a policy run; give --resume to continue it, or another directory")
+    if resume and not (root / CHECKPOINT).exists():
+        raise ConfigError(f"{root}: nothing to resume (no {CHECKPOINT})")
+    device = resolve_device(cfg.device)
+    enc = encoder_config(cfg)  # validates the BNN before anything is written
+    if resume:
+        _check_resume(root, cfg)
+    root.mkdir(parents=True, exist_ok=True)
+    with dir_lock(root, "train-policy"), torch_settings(True, device, cfg.threads):
+        net = build_network(cfg, enc).to(device)
+        if cfg.init_from and not resume:
+            src, src_cfg = load_policy_network(cfg.init_from)
+            if src_cfg.mode != cfg.mode:
+                raise ConfigError(f"--init-from {cfg.init_from}: a {src_cfg.mode} run cannot initialize a {cfg.mode} run")
+            try:
+                net.load_state_dict(src.state_dict())
+            except RuntimeError:
+                raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's") from None
+        vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend,
+                       observation=cfg.observation.model_dump())
+        learner = _Learner(cfg, net, device, cfg.envs * vec.n_av)
+        segment = learner.load(root) if resume else 0
+        _write_config(root, cfg, net, enc)
+        if not resume:
+            say(f"{cfg.mode}: {net.parameter_count()} parameters")
+        log = _Log(root, learner.transitions if resume else None)
+        try:
+            return _run(cfg, root, net, learner, vec, segment, device, log, progress)
+        finally:
+            log.close()
+            vec.close()
+
+
+def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: _Learner, vec: Any, segment: int,
+         device: torch.device, log: _Log, progress: bool) -> TrainResult:
+    from tqdm import tqdm
+
+    bar = tqdm(total=cfg.steps, initial=min(learner.transitions, cfg.steps), unit="tr", disable=not progress,
+               dynamic_ncols=True, desc=f"train {cfg.mode}")
+    recent: list[EpisodeOutcome] = []
+    last_eval: dict[str, Any] = {}
+    t0 = time.perf_counter()
+    start_transitions = learner.transitions
+    net.train()
+    while learner.transitions < cfg.steps:
+        end = min(cfg.steps, (segment + 1) * cfg.segment)
+        cache = FeatureCache(net, device)
+        policy = epsilon_greedy(net, cache, learner.rng, learner.eps)
+        cur: np.ndarray | None = None
+        for rec in rollout(vec, policy, seed=train_reset_seed(cfg.seed, segment)):
+            if cur is None:
+                cur = learner.start_segment(cache(rec.obs))
+            before = learner.transitions
+            cur = learner.record(rec, cur, cache)
+            learner.learn()
+            recent = (recent + rec.outcomes)[-200:]
+            bar.update(min(learner.transitions, cfg.steps) - min(before, cfg.steps))
+            if learner.transitions >= end:
+                break
+        elapsed = time.perf_counter() - t0
+        loss = float(np.mean(learner.losses)) if learner.losses else float("nan")
+        learner.losses.clear()
+        row = {
+            "transitions": learner.transitions, "updates": learner.updates, "episodes": learner.episodes,
+            "epsilon": round(learner.eps(), 4), "loss": loss,
+            "train_failure_rate": float(np.mean([o.failed for o in recent])) if recent else float("nan"),
+            "train_crash_rate": float(np.mean([o.crashed for o in recent])) if recent else float("nan"),
+            "transitions_per_s": (learner.transitions - start_transitions) / max(elapsed, 1e-9),
+            "elapsed_s": round(elapsed, 2),
+        }
+        log.write(METRICS, row)
+        final = learner.transitions >= cfg.steps
+        if final or (cfg.eval_every and (segment + 1) % cfg.eval_every == 0):
+            last_eval = _evaluate(cfg, net, device)
+            for name, summary in [*last_eval["scenarios"].items(), ("mixed", last_eval["mixed"])]:
+                log.write(EVALS, {"transitions": learner.transitions, "scenario": name, "episodes": summary["episodes"],
+                                  "failure_rate": summary["failure_rate"]["rate"],
+                                  "crash_rate": summary["crash_rate"]["rate"],
+                                  "success_rate": summary["success_rate"]["rate"],
+                                  "mean_return": summary["mean_return"]["mean"]})
+            mixed = last_eval["mixed"]
+            bar.set_postfix(fail=f"{mixed['failure_rate']['rate']:.2f}", crash=f"{mixed['crash_rate']['rate']:.2f}")
+        learner.save(root, segment)
+        segment += 1
+    bar.close()
+    return TrainResult(transitions=learner.transitions, updates=learner.updates, episodes=learner.episodes,
+                       evaluation=last_eval, parameters=net.parameter_count())
