@@ -24,14 +24,11 @@ import numpy as np
 import torch
 from numpy.typing import NDArray
 
-__all__ = ["Batch", "FrameStore", "LatentStore", "ObservationStore", "Replay", "quantize"]
+from latentdrive.data.shards import dequantize, quantize
+
+__all__ = ["Batch", "FrameStore", "LatentStore", "ObservationStore", "Replay"]
 
 IntArray = NDArray[np.int64]
-
-
-def quantize(x: NDArray[np.floating]) -> NDArray[np.uint8]:
-    """``round(255·x)`` as uint8 for ``x`` in [0, 1]; error at most 1/510."""
-    return np.rint(np.clip(x, 0.0, 1.0) * 255.0).astype(np.uint8)
 
 
 class Batch(NamedTuple):
@@ -120,7 +117,7 @@ class FrameStore:
         if len(ids) and chain.min() < oldest:
             raise IndexError("frame evicted from the store")
         frames = self.data[chain % self.capacity]  # (k, T, 4, H, W)
-        return frames.transpose(0, 2, 1, 3, 4).astype(np.float32) / np.float32(255.0)
+        return dequantize(frames.transpose(0, 2, 1, 3, 4))
 
     def state(self) -> dict[str, np.ndarray]:
         return {"data": self.data, "prev": self.prev, "added": np.array([self.added], dtype=np.int64)}

@@ -1,0 +1,109 @@
+"""Replay stores each observation once: stacks rebuilt from uint8 frames, latents encoded once."""
+
+import numpy as np
+import pytest
+import torch
+
+import latentdrive
+from latentdrive.data.shards import QUANT_MAX_ERROR
+from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
+from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.policy import FeatureCache, build_network
+from latentdrive.rl.replay import FrameStore, LatentStore, Replay
+from latentdrive.rl.train import _Learner, _make_store
+from latentdrive.rollout import rollout
+
+OBS = {"height": 16, "width": 32, "frames": 3}
+
+
+def _random_policy(rng):
+    return lambda inp: rng.integers(0, 5, size=inp.active.shape)
+
+
+def _record(mode: str, steps: int = 30):
+    """Drive a learner's replay writing through real rollouts; keep every stored observation."""
+    cfg = PolicyTrainConfig(mode=mode, scenarios=("intersection", "merge"), envs=4, observation=OBS,
+                            dqn={"buffer_size": 1000})
+    net = build_network(cfg, None if mode == "raw" else BottleneckConfig.for_observation(cfg.observation))
+    vec = latentdrive.make_vec(list(cfg.scenarios), cfg.envs, observation=OBS)
+    learner = _Learner(cfg, net, torch.device("cpu"), cfg.envs * vec.n_av)
+    cache = FeatureCache(net, torch.device("cpu"))
+    seen: dict[int, np.ndarray] = {}
+    cur = None
+    for t, rec in enumerate(rollout(vec, _random_policy(np.random.default_rng(0)), seed=1)):
+        if cur is None:
+            cur = learner.start_segment(cache(rec.obs))
+            for (e, a), i in np.ndenumerate(cur):
+                seen[int(i)] = rec.obs[e, a]
+        ei, ai = np.nonzero(rec.agents.acting)
+        start = learner.replay.added
+        cur = learner.record(rec, cur, cache)
+        for j, (e, a) in enumerate(zip(ei, ai, strict=True)):
+            seen[int(learner.replay.next_id[start + j])] = rec.next_obs[e, a]
+        for e in np.flatnonzero(rec.ended):
+            for a in range(vec.n_av):
+                seen[int(cur[e, a])] = rec.obs_after[e, a]
+        if t == steps:
+            break
+    return learner, net, seen
+
+
+def test_sampled_raw_stacks_equal_the_env_observations_within_quantization():
+    learner, _, seen = _record("raw")
+    assert any(learner.replay.terminated[: len(learner.replay)])  # episodes ended in there
+    ids = np.array(sorted(seen))
+    got = learner.replay.store.get(ids)
+    want = np.stack([seen[int(i)] for i in ids])
+    assert got.shape == want.shape
+    assert np.abs(got - want).max() <= QUANT_MAX_ERROR + 1e-7
+    # Sampling goes through the same path.
+    batch = learner.replay.sample(np.random.default_rng(0), 16)
+    assert batch.obs.shape == (16, 4, 3, 16, 32) and batch.next_obs.shape == batch.obs.shape
+
+
+def test_latent_replay_is_exactly_encoding_at_sampling_time():
+    learner, net, seen = _record("latent-random")
+    ids = np.array(sorted(seen))
+    stored = torch.from_numpy(learner.replay.store.get(ids))
+    with torch.no_grad():
+        fresh = net.encoder.encode(torch.from_numpy(np.stack([seen[int(i)] for i in ids])))
+    # Frozen encoder: the stored latents are what sampling-time encoding would give.
+    torch.testing.assert_close(stored, fresh, atol=1e-6, rtol=1e-5)
+
+
+def test_transitions_of_an_ended_episode_lead_to_its_final_observation():
+    learner, _, seen = _record("raw", steps=40)
+    r = learner.replay
+    n = len(r)
+    # Every transition's next observation continues the same agent's stack: its older
+    # frames are the newer frames of the observation it came from.
+    for k in range(n):
+        a, b = seen[int(r.obs_id[k])], seen[int(r.next_id[k])]
+        np.testing.assert_array_equal(a[:, 1:], b[:, :-1])
+
+
+def test_evicted_observations_are_refused():
+    store = FrameStore(4, (4, 2, 8, 8))
+    ids = store.add(np.zeros((6, 4, 2, 8, 8), np.float32), np.full(6, -1))
+    with pytest.raises(IndexError, match="evicted"):
+        store.get(ids[:1])
+    latents = LatentStore(2, (3,))
+    ids = latents.add(np.zeros((3, 3), np.float32), np.full(3, -1))
+    with pytest.raises(IndexError):
+        latents.get(ids[:1])
+
+
+def test_raw_replay_of_100k_transitions_fits_in_2_gib():
+    cfg = PolicyTrainConfig(mode="raw", dqn={"buffer_size": 100_000})
+    net = build_network(cfg, None)
+    replay = Replay(cfg.dqn.buffer_size, _make_store(net, cfg, n_slots=16 * 2))
+    total = sum(v.nbytes for v in replay.state().values())
+    assert total <= 2 * 2**30, f"{total / 2**30:.2f} GiB"
+
+
+def test_latent_network_stores_latents():
+    enc = BottleneckNetwork(BottleneckConfig(latent_dim=16))
+    cfg = PolicyTrainConfig(mode="latent-random")
+    net = build_network(cfg, enc.cfg)
+    assert net.stored_shape == (3, 16)
+    assert net(torch.zeros(2, 3, 16)).shape == (2, 5)

@@ -1,0 +1,104 @@
+"""Training runs: frozen encoders, determinism, bitwise resumption, evaluation seeds."""
+
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import numpy as np
+import pytest
+from safetensors.numpy import load_file
+
+from latentdrive.rl.policy import CHECKPOINT, load_policy_network
+from latentdrive.rl.train import train_policy
+from latentdrive.seeds import EVAL_RESET_SEEDS, TRAIN_RESET_SEEDS, eval_reset_seed, train_reset_seed
+
+
+def _model_tensors(run_dir):
+    return {k: v for k, v in load_file(str(run_dir / CHECKPOINT)).items() if k.startswith(("model/", "target/"))}
+
+
+def _quiet(**kw):
+    return {"progress": False, "say": lambda _line: None, **kw}
+
+
+@pytest.mark.parametrize("mode, encoder_trains", [("latent-random", False), ("end-to-end", True)])
+def test_the_encoder_changes_only_in_end_to_end_mode(tmp_path, tiny, mode, encoder_trains):
+    cfg = tiny(mode=mode, steps=200)
+    train_policy(cfg, tmp_path / "run", **_quiet())
+    from latentdrive.rl.policy import build_network, encoder_config
+
+    start = build_network(cfg, encoder_config(cfg)).state_dict()  # the seeded initial weights
+    trained, _ = load_policy_network(tmp_path / "run")
+    end = trained.state_dict()
+    enc_same = all(np.array_equal(start[k].numpy(), end[k].numpy()) for k in start if k.startswith("encoder."))
+    body_same = all(np.array_equal(start[k].numpy(), end[k].numpy()) for k in start if k.startswith("body."))
+    assert enc_same != encoder_trains
+    assert not body_same
+
+
+def test_same_config_and_seed_give_the_same_weights_and_evaluation(tmp_path, tiny):
+    cfg = tiny(mode="raw")
+    a = train_policy(cfg, tmp_path / "a", **_quiet())
+    b = train_policy(cfg, tmp_path / "b", **_quiet())
+    ta, tb = _model_tensors(tmp_path / "a"), _model_tensors(tmp_path / "b")
+    assert ta.keys() == tb.keys() and all(np.array_equal(ta[k], tb[k]) for k in ta)
+    assert a["evaluation"] == b["evaluation"] and a["updates"] == b["updates"] > 0
+    c = train_policy(tiny(mode="raw", seed=1), tmp_path / "c", **_quiet())
+    tc = _model_tensors(tmp_path / "c")
+    assert not all(np.array_equal(ta[k], tc[k]) for k in ta)
+    assert c["transitions"] >= 300
+
+
+def test_a_killed_run_resumes_to_the_weights_of_an_uninterrupted_one(tmp_path, tiny):
+    cfg = tiny(mode="latent-random", steps=500)
+    train_policy(cfg, tmp_path / "whole", **_quiet())
+    script = textwrap.dedent(f"""
+        import json, sys
+        from latentdrive.rl.config import PolicyTrainConfig
+        from latentdrive.rl.train import train_policy
+        cfg = PolicyTrainConfig.model_validate(json.loads({cfg.model_dump_json()!r}))
+        train_policy(cfg, sys.argv[1], progress=False, say=lambda _l: None)
+    """)
+    run = tmp_path / "killed"
+    proc = subprocess.Popen([sys.executable, "-c", script, str(run)])
+    deadline = time.time() + 120
+    while not (run / CHECKPOINT).exists() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.05)
+    assert proc.poll() is None, "the run finished before it could be interrupted"
+    proc.send_signal(signal.SIGKILL)
+    proc.wait()
+    from latentdrive.bnn.checkpoint import read_checkpoint
+
+    done = read_checkpoint(run / CHECKPOINT)[1]["extra"]["transitions"]
+    assert done < cfg.steps
+    train_policy(cfg, run, resume=True, **_quiet())
+    whole, resumed = _model_tensors(tmp_path / "whole"), _model_tensors(run)
+    assert all(np.array_equal(whole[k], resumed[k]) for k in whole)
+    lines = (run / "metrics.csv").read_text().splitlines()
+    assert len(lines) == len((tmp_path / "whole" / "metrics.csv").read_text().splitlines())
+
+
+def test_training_and_evaluation_seeds_are_disjoint(tmp_path, tiny):
+    assert TRAIN_RESET_SEEDS.stop + 4096 <= EVAL_RESET_SEEDS.start
+    for seed in range(50):
+        for segment in range(50):
+            s = train_reset_seed(seed, segment)
+            assert s in TRAIN_RESET_SEEDS and s + 4095 < EVAL_RESET_SEEDS.start
+    assert eval_reset_seed(0) in EVAL_RESET_SEEDS
+    # The episodes themselves: a short run's training episodes never appear in evaluation.
+    import latentdrive
+    from latentdrive.rollout import rollout
+
+    def episode_seeds(reset_seed, steps=40):
+        vec = latentdrive.make_vec("intersection", 4, observation={"height": 16, "width": 32, "frames": 2})
+        seeds = set()
+        for t, rec in enumerate(rollout(vec, lambda inp: np.full(inp.active.shape, 4), seed=reset_seed)):
+            seeds |= {o.seed for o in rec.outcomes}
+            if t == steps:
+                return seeds
+        return seeds
+
+    train = episode_seeds(train_reset_seed(0, 0)) | episode_seeds(train_reset_seed(0, 1))
+    assert train and not train & episode_seeds(eval_reset_seed(0))
