@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from latentdrive.bnn.checkpoint import atomic_write_text
+from latentdrive.config import ConfigError
 from latentdrive.evaluate.gif import save_episode_gif
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.report import PolicyReport, compare, policy_report
@@ -22,7 +23,7 @@ from latentdrive.rollout import Policy, rollout
 from latentdrive.seeds import eval_reset_seed
 from latentdrive.vec import make_vec
 
-__all__ = ["EvaluationSet", "evaluate_many", "pairs_to_channels", "save_policy_gif"]
+__all__ = ["EvaluationSet", "evaluate_many", "pairs_to_channels", "policy_makers", "save_policy_gif"]
 
 
 class EvaluationSet:
@@ -45,18 +46,24 @@ class EvaluationSet:
                                seed_offset=self.seed_offset, progress=progress, **kw)
 
 
-def evaluate_many(runs: Sequence[str], references: Sequence[str], eval_set: EvaluationSet,
-                  device: torch.device, progress: Callable[[int], None] | None = None,
-                  ) -> tuple[dict[str, PolicyReport], dict[str, list[EpisodeOutcome]]]:
-    """Reports and raw outcomes of every run and reference policy on the same episodes."""
+def policy_makers(runs: Sequence[str], references: Sequence[str], eval_set: EvaluationSet,
+                  device: torch.device) -> dict[str, Callable[[], Policy]]:
+    """Load every run (failing early, with a one-line error) and name every policy to evaluate."""
     makers: dict[str, Callable[[], Policy]] = {}
     for run in runs:
         net, cfg = load_policy_network(run, device)
-        if cfg.observation.model_dump() != {**cfg.observation.model_dump(), **eval_set.observation}:
-            raise ValueError(f"{run}: trained on another observation config than the evaluation's")
+        if eval_set.observation and cfg.observation.model_dump() != eval_set.observation:
+            raise ConfigError(f"{run}: trained on another observation config than the evaluation's")
         makers[run] = greedy_policy(net, device)
     for name in references:
         makers[name] = reference_policy(name)
+    return makers
+
+
+def evaluate_many(makers: dict[str, Callable[[], Policy]], eval_set: EvaluationSet,
+                  progress: Callable[[int], None] | None = None,
+                  ) -> tuple[dict[str, PolicyReport], dict[str, list[EpisodeOutcome]]]:
+    """Reports and raw outcomes of every policy on the same episodes."""
     outcomes = {name: eval_set.run(make, progress) for name, make in makers.items()}
     return {name: policy_report(o) for name, o in outcomes.items()}, outcomes
 

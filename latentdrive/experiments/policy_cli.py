@@ -50,7 +50,14 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from latentdrive.bnn.train import resolve_device
     from latentdrive.evaluate.policies import REFERENCE_POLICIES, reference_policy
     from latentdrive.evaluate.report import format_compare, format_table
-    from latentdrive.experiments.policy import EvaluationSet, evaluate_many, paired, save_policy_gif, write_json
+    from latentdrive.experiments.policy import (
+        EvaluationSet,
+        evaluate_many,
+        paired,
+        policy_makers,
+        save_policy_gif,
+        write_json,
+    )
     from latentdrive.rl.policy import greedy_policy, load_policy_network, read_run_config
     from latentdrive.scenarios import SCENARIOS, get_spec
 
@@ -85,8 +92,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                              observation=observations[0] if observations else None)
     device = resolve_device(args.device)
     total = args.episodes * len(scenarios) * (len(runs) + len(references))
+    makers = policy_makers(runs, references, eval_set, device)
     with tqdm(total=total, unit="ep", disable=args.quiet, desc="evaluate", dynamic_ncols=True) as bar:
-        reports, outcomes = evaluate_many(runs, references, eval_set, device, progress=bar.update)
+        reports, outcomes = evaluate_many(makers, eval_set, progress=bar.update)
     print(f"{args.episodes} evaluation episodes per scenario ({eval_set.envs} envs, reset seed "
           f"{eval_set.as_dict()['reset_seed']}, {args.backend} backend); failure = crashed or mission not "
           "completed in time. [95% Wilson intervals]")

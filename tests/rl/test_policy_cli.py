@@ -1,0 +1,112 @@
+"""train-policy and evaluate: bad input is one line, exit 2, and nothing written."""
+
+import json
+import shutil
+
+import pytest
+
+from latentdrive.bnn.checkpoint import save_checkpoint
+from latentdrive.cli import main
+from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
+from latentdrive.rl.train import train_policy
+
+from .conftest import TINY
+
+TINY_SETS = [
+    "--set", "observation.height=16", "--set", "observation.width=32", "--set", "observation.frames=2",
+    "--set", "vfan.hidden=32", "--set", "segment=100", "--set", "eval_every=0", "--set", "eval_episodes=4",
+    "--set", "dqn.learning_starts=50", "--set", "dqn.buffer_size=1000", "--envs", "4",
+]
+
+
+def _snapshot(root):
+    return {p: p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def _fails(capsys, args, needle, root):
+    before = _snapshot(root)
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("latentdrive: error:") and needle in err[0], err
+    assert _snapshot(root) == before  # nothing written or changed
+
+
+@pytest.fixture(scope="module")
+def raw_run(tmp_path_factory):
+    from latentdrive.rl.config import PolicyTrainConfig
+
+    root = tmp_path_factory.mktemp("runs")
+    cfg = PolicyTrainConfig.model_validate({**TINY, "mode": "raw", "steps": 100})
+    train_policy(cfg, root / "raw", progress=False, say=lambda _l: None)
+    return root / "raw"
+
+
+def _bnn_run(path, obs_shape):
+    path.mkdir(parents=True)
+    cfg = BottleneckConfig(input_shape=obs_shape, latent_dim=8, channels=(4,))
+    save_checkpoint(path / "checkpoint.safetensors", BottleneckNetwork(cfg), step=0, epoch=0,
+                    config={"model": cfg.model_dump(mode="json")})
+    return path
+
+
+def test_latent_mode_needs_a_bnn(tmp_path, capsys):
+    _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", *TINY_SETS], "needs a trained BNN", tmp_path)
+    _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", "--bnn", str(tmp_path / "none"), *TINY_SETS],
+           "no BNN checkpoint", tmp_path)
+    assert not (tmp_path / "r").exists()
+
+
+def test_a_bnn_of_another_observation_shape_is_refused(tmp_path, capsys):
+    bnn = _bnn_run(tmp_path / "bnn", (4, 32, 64))  # the default grid, not the tiny one
+    _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", "--bnn", str(bnn), *TINY_SETS],
+           "the BNN takes observations (4, 4, 32, 64) but the env gives (4, 2, 16, 32)", tmp_path)
+
+
+def test_unknown_scenarios_are_refused(tmp_path, capsys, raw_run):
+    _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "raw", "--scenarios", "merge,lake", *TINY_SETS],
+           "unknown scenario 'lake'", tmp_path)
+    _fails(capsys, ["evaluate", str(raw_run), "--scenarios", "lake", "--episodes", "2"], "unknown scenario 'lake'", tmp_path)
+
+
+def test_evaluating_a_run_without_checkpoint(tmp_path, capsys, raw_run):
+    _fails(capsys, ["evaluate", str(tmp_path), "--episodes", "2"], "not a policy run", tmp_path)
+    half = tmp_path / "half"
+    half.mkdir()
+    shutil.copy(raw_run / "config.json", half / "config.json")
+    _fails(capsys, ["evaluate", str(half), "--episodes", "2", "--policy", "none"], "no checkpoint yet", tmp_path)
+
+
+def test_a_checkpoint_of_another_mode_is_refused(tmp_path, capsys, raw_run):
+    other = tmp_path / "other"
+    shutil.copytree(raw_run, other)
+    cfg = json.loads((other / "config.json").read_text())
+    cfg["train"]["mode"] = "latent-random"
+    cfg["encoder"] = BottleneckConfig(input_shape=(2, 16, 32)).model_dump(mode="json")
+    (other / "config.json").write_text(json.dumps(cfg))
+    _fails(capsys, ["evaluate", str(other), "--episodes", "2", "--policy", "none"], "architecture differs", tmp_path)
+    # Resuming with another mode or another architecture is refused before anything runs.
+    _fails(capsys, ["train-policy", str(raw_run.parent / "raw"), "--resume", "--mode", "end-to-end"],
+           "mode", raw_run.parent)
+    _fails(capsys, ["train-policy", str(raw_run), "--resume", "--set", "vfan.hidden=64"], "vfan", raw_run.parent)
+
+
+def test_a_corrupt_checkpoint_is_refused(tmp_path, capsys, raw_run):
+    bad = tmp_path / "bad"
+    shutil.copytree(raw_run, bad)
+    data = bytearray((bad / "checkpoint.safetensors").read_bytes())
+    data[-10:] = b"\x00" * 10
+    (bad / "checkpoint.safetensors").write_bytes(bytes(data))
+    _fails(capsys, ["evaluate", str(bad), "--episodes", "2", "--policy", "none"], "corrupt checkpoint", tmp_path)
+
+
+def test_evaluate_writes_json_and_compares(tmp_path, capsys, raw_run):
+    out = tmp_path / "e.json"
+    assert main(["evaluate", str(raw_run), "--compare", str(raw_run), "--episodes", "4", "--envs", "2",
+                 "--policy", "stop", "--json", str(out), "-q"]) == 0
+    doc = json.loads(out.read_text())
+    s = doc["scenarios"]["intersection"]
+    assert {"crash_rate", "failure_rate", "success_rate", "episodes"} <= s.keys() and s["episodes"] == 4
+    assert doc["policies"]["stop"]["mixed"]["crash_rate"]["n"] == 4
+    # A run compared with itself: no discordant pairs, p = 1.
+    assert doc["compare"]["tests"]["mixed"]["failed"]["p_value"] == 1.0
+    assert doc["config"]["evaluation"]["reset_seed"] >= 2**30
