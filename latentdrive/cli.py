@@ -77,6 +77,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         get_spec(name)  # unknown names fail before any work
     if args.steps < 1:
         raise LatentDriveError("--steps must be at least 1")
+    if args.train:
+        from latentdrive.rl.bench import bench_training, format_train_bench
+
+        overrides = parse_override_args(args.overrides)
+        modes = args.modes.split(",") if args.modes else ["raw", "latent", "end-to-end"]
+        _say(f"benchmarking training in {len(modes)} mode(s) on {', '.join(names)} ...")
+        trows = bench_training(modes, names, transitions=args.steps, envs=args.batch_size, bnn=args.bnn or None,
+                               overrides=overrides, progress=_say)
+        print(format_train_bench(trows, args.batch_size, int(overrides.get("threads", 1))))
+        if args.json:
+            Path(args.json).write_text(json.dumps([r.as_dict() for r in trows], indent=1))
+        return 0
     cfg = validate(ObservationConfig, parse_override_args(args.overrides), prefix="observation.")
     _say(f"benchmarking {len(names)} scenario(s) on the {args.backend} backend ...")
     if args.backend == "fast":
@@ -212,7 +224,12 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--batch-size", type=int, default=64, help="environments per fast batch (default 64)")
     s.add_argument("--seed", type=int, default=0)
     s.add_argument("--json", default="", help="also write the rows to this JSON file")
-    _add_set(s, "observation override, repeatable (--set height=64 --set resolution=1.0)")
+    s.add_argument("--train", action="store_true",
+                   help="benchmark the training loop instead: updates/s, agent-transitions/s and where the time goes, per mode "
+                        "(--steps: agent-transitions measured; --batch-size: envs; --set: train-policy overrides)")
+    s.add_argument("--modes", default="", help="with --train: comma-separated modes (default raw,latent,end-to-end)")
+    s.add_argument("--bnn", default="", help="with --train: a BNN run for mode latent (default: an untrained encoder, same cost)")
+    _add_set(s, "observation override, repeatable (--set height=64 --set resolution=1.0); with --train, train-policy overrides")
     s.set_defaults(func=_cmd_bench)
 
     s = sub.add_parser("validate-backend", help="fidelity of the fast backend to highway-env: episode statistics of both")

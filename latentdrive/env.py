@@ -110,7 +110,7 @@ class Episode:
         self.scene: Scene | None = None
         self.steps = 0
         self.seed = 0
-        self.active = np.zeros(config.scenario.n_av, dtype=bool)
+        self.active: NDArray[np.bool_] = np.zeros(config.scenario.n_av, dtype=bool)
         self.ended = False
 
     def start(self, scene: Scene, episode_seed: int) -> tuple[np.ndarray, dict[str, Any]]:
@@ -155,7 +155,7 @@ class Episode:
         rewards = np.where(acting, rewards, 0.0)
         terminated, truncated = episode_end(scene, self.steps, self.spec)
         self.ended = terminated or truncated
-        own_end = acting & (scene.crashed[ag] | scene.arrived[ag])  # type: ignore[index]
+        own_end: NDArray[np.bool_] = acting & (scene.crashed[ag] | scene.arrived[ag])  # type: ignore[index]
         cut_off = acting & ~own_end & self.ended
         self.active = acting & ~own_end & ~self.ended
         agents = AgentStep(rewards, acting.copy(), own_end, cut_off, self.active.copy())

@@ -10,6 +10,7 @@ the backend's environments do not interact.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Sequence
 from typing import Any, ClassVar
 
@@ -77,6 +78,9 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         self._batch = make_batch([c.scenario for c in configs], backend)
         self._episodes = [Episode(c) for c in configs]
         self._rngs: list[np.random.Generator] | None = None
+        #: Seconds spent in the simulator and in building observations (rewards included) by
+        #: step() since construction; resets excluded. For benchmarks.
+        self.timings = {"simulate": 0.0, "observe": 0.0}
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:
@@ -105,13 +109,17 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         if acts.shape[:1] != (self.num_envs,):
             raise ValueError(f"actions must be ({self.num_envs}, {self.n_av}), got shape {acts.shape}")
         checked = [ep.check_actions(a) for ep, a in zip(self._episodes, acts, strict=True)]
+        t0 = time.perf_counter()
         scenes = self._batch.step(checked)
+        t1 = time.perf_counter()
         obs, rewards, terms, truncs, infos = zip(*(ep.advance(sc) for ep, sc in zip(self._episodes, scenes, strict=True)), strict=True)
+        self.timings["simulate"] += t1 - t0
+        self.timings["observe"] += time.perf_counter() - t1
         obs_list, info_list = list(obs), list(infos)
         agents = AgentStep(*(np.stack(f) for f in zip(*(inf["agents"] for inf in infos), strict=True)))
         done = [i for i in range(self.num_envs) if terms[i] or truncs[i]]
         final_obs = np.full(self.num_envs, None, dtype=object)
-        ended = [None] * self.num_envs
+        ended: list[dict[str, Any] | None] = [None] * self.num_envs
         if done:
             seeds = [self._next_seed(i) for i in done]
             for i, scene, s in zip(done, self._batch.reset(seeds, env_ids=done), seeds, strict=True):

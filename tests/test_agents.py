@@ -75,7 +75,7 @@ def test_time_out_cuts_off_every_driving_av():
 
 def test_step_after_the_end_raises_and_reset_starts_over():
     env = make_env("merge", backend="fast", **SMALL)
-    obs, info = env.reset(seed=3)
+    _obs, info = env.reset(seed=3)
     assert info["agents"].active.all() and not info["agents"].acting.any()
     done = False
     while not done:

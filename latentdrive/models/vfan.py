@@ -41,7 +41,7 @@ from latentdrive.actions import N_ACTIONS
 from latentdrive.config import Config
 from latentdrive.models.bottleneck import BottleneckNetwork
 
-__all__ = ["MODES", "LATENT_MODES", "Mode", "QNetwork", "VFANConfig"]
+__all__ = ["LATENT_MODES", "MODES", "Mode", "QNetwork", "VFANConfig"]
 
 Mode = Literal["raw", "latent", "latent-random", "end-to-end"]
 MODES: tuple[str, ...] = ("raw", "latent", "latent-random", "end-to-end")
@@ -62,10 +62,10 @@ class VFANConfig(Config):
 def _conv(c_in: int, c_out: int, size: tuple[int, int, int], kernel: tuple[int, int, int],
           stride: tuple[int, int, int]) -> tuple[nn.Conv3d, tuple[int, int, int]]:
     """A Conv3d whose kernel (and stride) are clipped to ``size``; returns it and its output size."""
-    k = tuple(min(kk, n) for kk, n in zip(kernel, size, strict=True))
-    s = tuple(min(ss, kk) for ss, kk in zip(stride, k, strict=True))
-    out = tuple((n - kk) // ss + 1 for n, kk, ss in zip(size, k, s, strict=True))
-    return nn.Conv3d(c_in, c_out, kernel_size=k, stride=s), (out[0], out[1], out[2])
+    k = (min(kernel[0], size[0]), min(kernel[1], size[1]), min(kernel[2], size[2]))
+    s = (min(stride[0], k[0]), min(stride[1], k[1]), min(stride[2], k[2]))
+    out = ((size[0] - k[0]) // s[0] + 1, (size[1] - k[1]) // s[1] + 1, (size[2] - k[2]) // s[2] + 1)
+    return nn.Conv3d(c_in, c_out, kernel_size=k, stride=s), out
 
 
 class VFANBody(nn.Module):

@@ -8,6 +8,7 @@ model tensors include the encoder: a run is self-contained once trained.
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -87,19 +88,25 @@ class FeatureCache:
         self.net, self.device = net, device
         self._key: NDArray[np.float32] | None = None
         self._value: torch.Tensor | None = None
+        self.seconds = 0.0  # wall time spent computing features (for the benchmark)
 
     def __call__(self, obs: NDArray[np.float32]) -> torch.Tensor:
         """Features ``(num_envs, n_av, *stored_shape)`` of ``obs`` ``(num_envs, n_av, 4, T, H, W)``."""
         if obs is not self._key:
+            t0 = time.perf_counter()
             flat = torch.from_numpy(obs.reshape(-1, *obs.shape[2:])).to(self.device)
             self._value = self.net.features(flat).reshape(*obs.shape[:2], *self.net.stored_shape)
             self._key = obs
+            self.seconds += time.perf_counter() - t0
         assert self._value is not None
         return self._value
 
     def encode(self, obs: NDArray[np.float32]) -> torch.Tensor:
         """Features of observations ``(k, 4, T, H, W)`` outside the cache."""
-        return self.net.features(torch.from_numpy(obs).to(self.device))
+        t0 = time.perf_counter()
+        out = self.net.features(torch.from_numpy(obs).to(self.device))
+        self.seconds += time.perf_counter() - t0
+        return out
 
 
 def q_values(net: QNetwork, feats: torch.Tensor) -> torch.Tensor:

@@ -180,7 +180,7 @@ class Replay:
 
     def state(self) -> dict[str, np.ndarray]:
         """Every array needed to continue exactly (for checkpoints)."""
-        own = {"obs_id": self.obs_id, "next_id": self.next_id, "action": self.action, "reward": self.reward,
+        own: dict[str, np.ndarray] = {"obs_id": self.obs_id, "next_id": self.next_id, "action": self.action, "reward": self.reward,
                "terminated": self.terminated, "added": np.array([self.added], dtype=np.int64)}
         return {**{f"replay/{k}": v for k, v in own.items()},
                 **{f"store/{k}": v for k, v in self.store.state().items()}}

@@ -16,7 +16,7 @@ import copy
 import csv
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -25,7 +25,13 @@ import torch
 from safetensors.numpy import load_file as np_load_file
 from safetensors.numpy import save as np_save
 
-from latentdrive.bnn.checkpoint import CheckpointError, atomic_write_bytes, atomic_write_text, load_checkpoint, save_checkpoint
+from latentdrive.bnn.checkpoint import (
+    CheckpointError,
+    atomic_write_bytes,
+    atomic_write_text,
+    load_checkpoint,
+    save_checkpoint,
+)
 from latentdrive.bnn.train import resolve_device, torch_settings
 from latentdrive.config import ConfigError, config_hash
 from latentdrive.evaluate.report import policy_report
@@ -51,7 +57,7 @@ from latentdrive.runlock import dir_lock
 from latentdrive.seeds import train_reset_seed
 from latentdrive.vec import make_vec
 
-__all__ = ["TrainResult", "train_policy"]
+__all__ = ["Learner", "TrainResult", "learner_steps", "make_store", "train_policy"]
 
 REPLAY = "replay.safetensors"
 METRICS = "metrics.csv"
@@ -65,7 +71,7 @@ class TrainResult(dict[str, Any]):
     """Final counters and the last evaluation (a plain dict, JSON-serializable)."""
 
 
-def _make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> ObservationStore:
+def make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> ObservationStore:
     cap = cfg.dqn.buffer_size
     if net.mode in LATENT_MODES:
         # Each transition adds at most two observations (next, and a new episode's first).
@@ -74,19 +80,21 @@ def _make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> Observat
     return FrameStore(2 * cap + (2 * t + 1) * n_slots, cfg.observation.shape)
 
 
-class _Learner:
+class Learner:
     """Replay writing and updates; one instance per run."""
 
     def __init__(self, cfg: PolicyTrainConfig, net: QNetwork, device: torch.device, n_slots: int) -> None:
         self.cfg, self.net, self.device = cfg, net, device
         self.target = copy.deepcopy(net).requires_grad_(False)
         self.optimizer = torch.optim.Adam(net.trainable_parameters(), lr=cfg.dqn.lr)
-        self.replay = Replay(cfg.dqn.buffer_size, _make_store(net, cfg, n_slots))
+        self.replay = Replay(cfg.dqn.buffer_size, make_store(net, cfg, n_slots))
         self.rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x51]))
         self.transitions = 0
         self.updates = 0
         self.episodes = 0
         self.losses: list[float] = []
+        self.learn_seconds = 0.0  # wall time in updates (for the benchmark)
+        self.cache = FeatureCache(net, device)
 
     def eps(self) -> float:
         return epsilon(self.cfg.dqn, self.transitions, self.cfg.steps)
@@ -124,6 +132,11 @@ class _Learner:
         return cur
 
     def learn(self) -> None:
+        t0 = time.perf_counter()
+        self._learn()
+        self.learn_seconds += time.perf_counter() - t0
+
+    def _learn(self) -> None:
         d = self.cfg.dqn
         owed = (self.transitions - d.learning_starts) // d.train_every - self.updates
         for _ in range(max(0, owed)):
@@ -169,6 +182,19 @@ class _Learner:
         self.updates = int(info.extra["updates"])
         self.episodes = int(info.extra["episodes"])
         return int(info.extra["segment"]) + 1
+
+
+def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]:
+    """The training loop proper: act ε-greedily, store the step's transitions, learn; yields each step."""
+    cache = learner.cache
+    policy = epsilon_greedy(learner.net, cache, learner.rng, learner.eps)
+    cur: np.ndarray | None = None
+    for rec in rollout(vec, policy, seed=seed):
+        if cur is None:
+            cur = learner.start_segment(cache(rec.obs))
+        cur = learner.record(rec, cur, cache)
+        learner.learn()
+        yield rec
 
 
 def _write_config(run_dir: Path, cfg: PolicyTrainConfig, net: QNetwork, enc: Any) -> None:
@@ -260,7 +286,7 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
                 raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's") from None
         vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend,
                        observation=cfg.observation.model_dump())
-        learner = _Learner(cfg, net, device, cfg.envs * vec.n_av)
+        learner = Learner(cfg, net, device, cfg.envs * vec.n_av)
         segment = learner.load(root) if resume else 0
         _write_config(root, cfg, net, enc)
         if not resume:
@@ -273,7 +299,7 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
             vec.close()
 
 
-def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: _Learner, vec: Any, segment: int,
+def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, vec: Any, segment: int,
          device: torch.device, log: _Log, progress: bool) -> TrainResult:
     from tqdm import tqdm
 
@@ -286,17 +312,11 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: _Learner, v
     net.train()
     while learner.transitions < cfg.steps:
         end = min(cfg.steps, (segment + 1) * cfg.segment)
-        cache = FeatureCache(net, device)
-        policy = epsilon_greedy(net, cache, learner.rng, learner.eps)
-        cur: np.ndarray | None = None
-        for rec in rollout(vec, policy, seed=train_reset_seed(cfg.seed, segment)):
-            if cur is None:
-                cur = learner.start_segment(cache(rec.obs))
-            before = learner.transitions
-            cur = learner.record(rec, cur, cache)
-            learner.learn()
+        before = learner.transitions
+        for rec in learner_steps(learner, vec, train_reset_seed(cfg.seed, segment)):
             recent = (recent + rec.outcomes)[-200:]
             bar.update(min(learner.transitions, cfg.steps) - min(before, cfg.steps))
+            before = learner.transitions
             if learner.transitions >= end:
                 break
         elapsed = time.perf_counter() - t0

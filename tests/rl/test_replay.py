@@ -10,7 +10,7 @@ from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import FeatureCache, build_network
 from latentdrive.rl.replay import FrameStore, LatentStore, Replay
-from latentdrive.rl.train import _Learner, _make_store
+from latentdrive.rl.train import Learner, make_store
 from latentdrive.rollout import rollout
 
 OBS = {"height": 16, "width": 32, "frames": 3}
@@ -26,7 +26,7 @@ def _record(mode: str, steps: int = 30):
                             dqn={"buffer_size": 1000})
     net = build_network(cfg, None if mode == "raw" else BottleneckConfig.for_observation(cfg.observation))
     vec = latentdrive.make_vec(list(cfg.scenarios), cfg.envs, observation=OBS)
-    learner = _Learner(cfg, net, torch.device("cpu"), cfg.envs * vec.n_av)
+    learner = Learner(cfg, net, torch.device("cpu"), cfg.envs * vec.n_av)
     cache = FeatureCache(net, torch.device("cpu"))
     seen: dict[int, np.ndarray] = {}
     cur = None
@@ -96,7 +96,7 @@ def test_evicted_observations_are_refused():
 def test_raw_replay_of_100k_transitions_fits_in_2_gib():
     cfg = PolicyTrainConfig(mode="raw", dqn={"buffer_size": 100_000})
     net = build_network(cfg, None)
-    replay = Replay(cfg.dqn.buffer_size, _make_store(net, cfg, n_slots=16 * 2))
+    replay = Replay(cfg.dqn.buffer_size, make_store(net, cfg, n_slots=16 * 2))
     total = sum(v.nbytes for v in replay.state().values())
     assert total <= 2 * 2**30, f"{total / 2**30:.2f} GiB"
 

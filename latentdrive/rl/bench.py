@@ -1,0 +1,123 @@
+"""``latentdrive bench --train``: where a training run's time goes, per input mode, measured in one run.
+
+For each mode it runs the real training loop (:func:`latentdrive.rl.train.learner_steps`:
+ε-greedy acting, replay writing, double-DQN updates) on the fast backend and reports:
+
+- learner updates/s: updates on a filled replay alone (sampling included);
+- end-to-end agent-transitions/s of the whole loop once learning has started;
+- the share of that wall time spent simulating, rendering VelocityMaps (and rewards),
+  encoding observations (the frozen encoder in latent modes), and learning; the rest is
+  replay writing, action selection and bookkeeping.
+
+``latent`` and ``latent-random`` differ only in the encoder's weights, not in cost, so
+without a BNN run the bench measures ``latent`` with an untrained encoder of the default
+architecture and says so.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from typing import Any
+
+from latentdrive.bnn.train import resolve_device, torch_settings
+from latentdrive.config import merge_overrides, validate
+from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.policy import build_network, encoder_config
+from latentdrive.rl.train import Learner, learner_steps
+from latentdrive.vec import make_vec
+
+__all__ = ["TrainBenchRow", "bench_training", "format_train_bench"]
+
+#: The authors' public runs: ~4.5 h per 4,000 episodes, about 5 env steps/s per run (ANCHORS.md).
+AUTHORS_ENV_STEPS_PER_S = 5.0
+
+
+@dataclass(frozen=True)
+class TrainBenchRow:
+    mode: str
+    device: str
+    trainable_parameters: int
+    updates_per_s: float
+    transitions_per_s: float
+    env_steps_per_s: float
+    simulate: float
+    render: float
+    encode: float
+    learn: float
+
+    @property
+    def other(self) -> float:
+        return max(0.0, 1.0 - self.simulate - self.render - self.encode - self.learn)
+
+    def as_dict(self) -> dict[str, Any]:
+        return {**asdict(self), "other": self.other}
+
+
+def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> TrainBenchRow:
+    device = resolve_device(cfg.device)
+    with torch_settings(True, device, cfg.threads):
+        net = build_network(cfg, encoder_config(cfg)).to(device)
+        vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend, observation=cfg.observation.model_dump())
+        learner = Learner(cfg, net, device, cfg.envs * vec.n_av)
+        steps = learner_steps(learner, vec, seed=0)
+        while learner.transitions < cfg.dqn.learning_starts:  # fill the replay first
+            next(steps)
+        for _ in range(10):  # warm up the learner and the kernels
+            next(steps)
+        t_sim0, t_obs0 = vec.timings["simulate"], vec.timings["observe"]
+        enc0, learn0, tr0, vsteps = learner.cache.seconds, learner.learn_seconds, learner.transitions, 0
+        t0 = time.perf_counter()
+        while learner.transitions - tr0 < transitions:
+            next(steps)
+            vsteps += 1
+        wall = time.perf_counter() - t0
+        done = learner.transitions - tr0
+        share = {
+            "simulate": (vec.timings["simulate"] - t_sim0) / wall, "render": (vec.timings["observe"] - t_obs0) / wall,
+            "encode": (learner.cache.seconds - enc0) / wall, "learn": (learner.learn_seconds - learn0) / wall,
+        }
+        t0 = time.perf_counter()
+        for _ in range(updates):
+            learner.transitions += cfg.dqn.train_every
+            learner._learn()
+        ups = updates / (time.perf_counter() - t0)
+        vec.close()
+    return TrainBenchRow(mode=cfg.mode, device=str(device), trainable_parameters=net.parameter_count()["trainable"],
+                         updates_per_s=ups, transitions_per_s=done / wall, env_steps_per_s=vsteps * cfg.envs / wall,
+                         **share)
+
+
+def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transitions: int = 2000, updates: int = 50,
+                   envs: int = 16, bnn: str | None = None, overrides: dict[str, Any] | None = None,
+                   progress: Callable[[str], None] | None = None) -> list[TrainBenchRow]:
+    rows = []
+    for mode in modes:
+        data: dict[str, Any] = {"mode": mode, "scenarios": list(scenarios), "envs": envs, "steps": 10**9,
+                                "dqn": {"learning_starts": 500}}
+        if mode == "latent":
+            data["bnn"] = bnn
+            if not bnn:
+                data["mode"] = "latent-random"
+        cfg = validate(PolicyTrainConfig, merge_overrides(data, overrides or {}))
+        row = _bench_mode(cfg, transitions, updates)
+        rows.append(TrainBenchRow(**{**asdict(row), "mode": mode if bnn or mode != "latent" else "latent (untrained encoder)"}))
+        if progress:
+            progress(f"  {mode}: {row.transitions_per_s:.0f} agent-transitions/s")
+    return rows
+
+
+def format_train_bench(rows: list[TrainBenchRow], envs: int, threads: int) -> str:
+    head = (f"training loop on the fast backend, {envs} envs, torch threads {threads}; shares of end-to-end wall time\n"
+            f"{'mode':<28}{'device':>7}{'params':>10}{'updates/s':>11}{'agent-tr/s':>12}{'env steps/s':>13}"
+            f"{'vs authors':>12}{'sim':>6}{'render':>8}{'encode':>8}{'learn':>7}{'other':>7}")
+    lines = [head]
+    for r in rows:
+        lines.append(
+            f"{r.mode:<28}{r.device:>7}{r.trainable_parameters:>10}{r.updates_per_s:>11.1f}{r.transitions_per_s:>12.0f}"
+            f"{r.env_steps_per_s:>13.0f}{r.env_steps_per_s / AUTHORS_ENV_STEPS_PER_S:>11.0f}x"
+            f"{100 * r.simulate:>5.0f}%{100 * r.render:>7.0f}%{100 * r.encode:>7.0f}%{100 * r.learn:>6.0f}%{100 * r.other:>6.0f}%")
+    lines.append(f"'vs authors': env steps/s over the authors' ~{AUTHORS_ENV_STEPS_PER_S:g} env steps/s per run "
+                 "(4,000 episodes in ~4.5 h on a GPU node).")
+    return "\n".join(lines)
