@@ -157,7 +157,7 @@ class Episode:
         self.ended = terminated or truncated
         own_end: NDArray[np.bool_] = acting & (scene.crashed[ag] | scene.arrived[ag])  # type: ignore[index]
         cut_off = acting & ~own_end & self.ended
-        self.active = acting & ~own_end & ~self.ended
+        self.active = acting & ~own_end & (not self.ended)
         agents = AgentStep(rewards, acting.copy(), own_end, cut_off, self.active.copy())
         self._stack.push(self._frame(scene, noisy=True))
         if self.config.clean_observation:

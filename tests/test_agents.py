@@ -37,7 +37,7 @@ def test_an_arrived_av_terminates_alone_and_then_earns_nothing():
     assert not term and not trunc
     assert a.acting.tolist() == [True, True]
     assert a.terminated.tolist() == [True, False] and a.truncated.tolist() == [False, False]
-    assert a.active.tolist() == [False, True]
+    assert a.active.tolist() == [False, True] and a.active.dtype == bool
     assert a.reward[0] >= mission and a.reward[0] == pytest.approx(mission + a.reward[1])
     # It drives on in the simulation, at speed, but it is no longer an agent of the episode.
     np.testing.assert_array_equal(ep.check_actions(np.array([3, 3])), [1, 3])
