@@ -9,7 +9,7 @@ from pydantic import Field, field_validator, model_validator
 from latentdrive.config import Config, ObservationConfig
 from latentdrive.models.vfan import MODES, Mode, VFANConfig
 from latentdrive.rl.dqn import DQNConfig
-from latentdrive.scenarios import get_spec
+from latentdrive.scenarios import RewardConfig, get_spec
 
 __all__ = ["PolicyTrainConfig"]
 
@@ -26,6 +26,7 @@ class PolicyTrainConfig(Config):
     bnn: str | None = Field(None, description="BNN run directory: the frozen encoder of mode 'latent'; for 'latent-random' and 'end-to-end' only its architecture is used (default architecture when omitted).")
     init_from: str | None = Field(None, description="Policy run directory whose final weights initialize this run (fine-tuning, transfer learning).")
     observation: ObservationConfig = Field(default_factory=ObservationConfig, description="VelocityMap settings; must match the BNN's input.")
+    reward: RewardConfig = Field(default_factory=RewardConfig, description="Per-agent reward weights while training (evaluation rates do not depend on them).")
     dqn: DQNConfig = Field(default_factory=DQNConfig, description="Q-learning hyperparameters.")
     vfan: VFANConfig = Field(default_factory=VFANConfig, description="VFAN body architecture.")
     segment: int = Field(10_000, ge=1, description="Agent-transitions between checkpoints. Every environment is reset at a segment boundary, from a seed fixed by (seed, segment index), so a resumed run continues exactly as an uninterrupted one.")

@@ -256,7 +256,7 @@ def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> di
     net.eval()
     outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenarios, cfg.eval_episodes,
                                envs=min(16, cfg.eval_episodes), backend=cfg.backend,
-                               observation=cfg.observation.model_dump())
+                               observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
     net.train()
     return policy_report(outcomes).as_dict()
 
@@ -285,7 +285,7 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
             except RuntimeError:
                 raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's") from None
         vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend,
-                       observation=cfg.observation.model_dump())
+                       observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
         learner = Learner(cfg, net, device, cfg.envs * vec.n_av)
         segment = learner.load(root) if resume else 0
         _write_config(root, cfg, net, enc)
