@@ -125,6 +125,11 @@ class QNetwork(nn.Module):
                                  f"not {observation_shape}")
             if mode in LATENT_MODES:
                 encoder.eval().requires_grad_(False)
+            else:
+                # end-to-end: the Q-loss reaches the encoder half only.
+                ae = encoder.autoencoder
+                for part in (ae.from_latent, ae.decoder_convs):
+                    part.requires_grad_(False)
             n_latent = encoder.latent_size
             body_input: tuple[int, int, int, int] = (n_latent, 1, 1, 1)
         else:
