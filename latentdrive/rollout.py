@@ -3,9 +3,10 @@
 Collection, evaluation and training all drive environments through :func:`rollout`. It
 yields one :class:`StepRecord` per vector step, holding what a learner needs (the
 observation each agent acted on, its action, reward, next observation and per-agent end
-flags) and the :class:`~latentdrive.outcome.EpisodeOutcome` of every episode that ended on
-that step. The caller decides when to stop (a transition budget, an episode quota) by
-breaking out of the loop.
+flags; for an env built with ``clean_observation=True`` also the noise-free observations,
+which dataset collection records) and the :class:`~latentdrive.outcome.EpisodeOutcome`
+of every episode that ended on that step. The caller decides when to stop (a transition
+budget, an episode quota) by breaking out of the loop.
 
 A policy is any callable ``policy(PolicyInput) -> actions (num_envs, n_av)`` int.
 """
@@ -20,6 +21,7 @@ from numpy.typing import NDArray
 
 from latentdrive.env import AgentStep
 from latentdrive.outcome import EpisodeOutcome
+from latentdrive.scene import Scene
 from latentdrive.vec import DrivingVecEnv
 
 __all__ = ["Policy", "PolicyInput", "StepRecord", "rollout", "scene_policy"]
@@ -47,6 +49,9 @@ class StepRecord(NamedTuple):
     ``agents.acting[e, a]`` marks the agents with a transition on this step:
     ``obs[e, a] --actions[e, a]--> next_obs[e, a]`` with reward ``agents.reward[e, a]``,
     bootstrapped unless ``agents.terminated[e, a]``.
+
+    ``clean_obs`` and ``clean_next_obs`` are the noise-free counterparts of ``obs`` and
+    ``next_obs`` when the env was built with ``clean_observation=True``, else None.
     """
 
     #: The observations the policy acted on, ``(num_envs, n_av, 4, T, H, W)``.
@@ -65,6 +70,10 @@ class StepRecord(NamedTuple):
     outcomes: list[EpisodeOutcome]
     #: ``(num_envs,)`` the Scenes the step led to (the ended episode's last where ``ended``).
     scenes: NDArray[np.object_]
+    #: The noise-free ``obs`` (env built with ``clean_observation=True``), else None.
+    clean_obs: NDArray[np.float32] | None = None
+    #: The noise-free ``next_obs`` (the ended episode's final one where ``ended``), else None.
+    clean_next_obs: NDArray[np.float32] | None = None
 
 
 class _Tally:
@@ -117,6 +126,7 @@ def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[St
     episodes as long as they are compared slot by slot and episode by episode.
     """
     obs, info = env.reset(seed=seed)
+    clean = info.get("clean_observation")
     active = info["agents"].active
     tally = _Tally(env.num_envs, env.n_av)
     while True:
@@ -134,18 +144,25 @@ def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[St
                   _agent_values(last_scenes, "crashed").astype(bool),
                   _agent_values(last_scenes, "arrived").astype(bool))
         next_obs = obs_after
+        clean_after = info.get("clean_observation")
+        clean_next = clean_after
         outcomes: list[EpisodeOutcome] = []
         if ended.any():
             next_obs = obs_after.copy()
+            if clean_after is not None:
+                clean_next = clean_after.copy()
             for e in np.flatnonzero(ended):
                 next_obs[e] = info["final_obs"][e]
+                if clean_next is not None:
+                    clean_next[e] = fin["clean_observation"][e]
                 outcomes.append(tally.close(int(e), str(scenarios[e]), int(seeds[e])))
-        yield StepRecord(obs, actions, agents, next_obs, ended, obs_after, outcomes, last_scenes)
-        obs = obs_after
+        yield StepRecord(obs, actions, agents, next_obs, ended, obs_after, outcomes, last_scenes,
+                         clean, clean_next)
+        obs, clean = obs_after, clean_after
         active = np.where(ended[:, None], True, agents.active)
 
 
-def scene_policy(fn: Callable[[object, np.random.Generator], NDArray[np.int64]],
+def scene_policy(fn: Callable[[Scene, np.random.Generator], NDArray[np.int64]],
                  rng: np.random.Generator) -> Policy:
     """Adapt a per-Scene driver ``fn(scene, rng) -> (n_av,)`` (see :mod:`latentdrive.data.policies`)."""
 

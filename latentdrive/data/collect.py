@@ -46,9 +46,11 @@ from latentdrive.data.shards import (
     write_manifest,
     write_shard,
 )
-from latentdrive.env import DrivingEnv, EnvConfig, make_env_config
+from latentdrive.env import EnvConfig, make_env_config
+from latentdrive.rollout import rollout, scene_policy
 from latentdrive.runlock import LOCK_NAME, dir_lock
 from latentdrive.scenarios import SCENARIOS
+from latentdrive.vec import DrivingVecEnv
 
 __all__ = [
     "CollectConfig",
@@ -209,9 +211,26 @@ class _UnitResult:
     seconds: float
 
 
+def _unit_vec_env(env_cfg: EnvConfig) -> DrivingVecEnv:
+    """A one-environment vector env of ``env_cfg`` with clean observations on.
+
+    Its environment 0 reset with seed ``s`` runs exactly the episode of
+    ``DrivingEnv(config=env_cfg).reset(seed=s)``.
+    """
+    overrides = {k: getattr(env_cfg, k) for k in EnvConfig.model_fields if k not in ("scenario", "backend")}
+    overrides["clean_observation"] = True
+    return DrivingVecEnv([env_cfg.scenario], backend=env_cfg.backend, **overrides)
+
+
 def _rollout_unit(cfg: CollectConfig, env_cfg: EnvConfig, unit: WorkUnit) -> tuple[dict[str, np.ndarray], list[int], list[str]]:
-    """Roll out a unit's episodes; returns the shard's arrays (without the config hash)."""
-    env = DrivingEnv(config=env_cfg)
+    """Roll out a unit's episodes; returns the shard's arrays (without the config hash).
+
+    Each episode is :func:`~latentdrive.rollout.rollout` of a one-environment vector env
+    reset with the episode's env seed, up to the step that ends it. Its observation after
+    ``step`` policy steps (the reset one is step 0) is recorded, noisy and clean, when
+    ``step % cfg.sample_every == 0``; the same rule applies to the final observation.
+    """
+    vec = _unit_vec_env(env_cfg)
     n_av = env_cfg.scenario.n_av
     noisy: list[np.ndarray] = []
     clean: list[np.ndarray] = []
@@ -222,25 +241,31 @@ def _rollout_unit(cfg: CollectConfig, env_cfg: EnvConfig, unit: WorkUnit) -> tup
         policy_name, policy = episode_policy(
             cfg.behaviour, rng, rule_fraction=cfg.rule_fraction,
             cruise_speeds=env_cfg.scenario.av_target_speeds)
-        obs, info = env.reset(seed=env_seed)
-        step, recorded, done = 0, 0, False
-        while True:
-            if step % cfg.sample_every == 0:
+        recorded = 0
+        # Record k is the step from the observation after k policy steps to the one after
+        # k + 1 (the episode's final observation on the record that ends it).
+        for k, rec in enumerate(rollout(vec, scene_policy(policy, rng), seed=env_seed)):
+            ended = bool(rec.ended[0])
+            views = [(k, rec.obs, rec.clean_obs)]
+            if ended:
+                views.append((k + 1, rec.next_obs, rec.clean_next_obs))
+            for step, obs, clean_obs in views:
+                if step % cfg.sample_every != 0:
+                    continue
+                if clean_obs is None:
+                    raise RuntimeError("the vector env returned no clean observations")
                 # Quantize at once: a shard's float32 observations would take 4× the memory.
-                noisy.append(quantize(obs))
-                clean.append(quantize(info["clean_observation"]))
+                noisy.append(quantize(obs[0]))
+                clean.append(quantize(clean_obs[0]))
                 index["episode"].append(unit.scenario * cfg.episodes + e)
                 index["seed"].append(env_seed)
                 index["step"].append(step)
                 recorded += n_av
-            if done:
+            if ended:
                 break
-            obs, _, terminated, truncated, info = env.step(policy(info["scene"], rng))
-            step += 1
-            done = terminated or truncated
         counts.append(recorded)
         policies.append(policy_name)
-    env.close()
+    vec.close()
     shape = env_cfg.observation.shape
     arrays = {
         "noisy": np.concatenate(noisy) if noisy else np.zeros((0, *shape), np.uint8),
