@@ -5,7 +5,7 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 TORCH   ?= torch==2.13.0
 
-.PHONY: run test test-all lint bench clean
+.PHONY: run test test-all lint bench learning clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -31,10 +31,14 @@ test-all: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check latentdrive tests
-	$(BIN)/mypy latentdrive
+	$(BIN)/mypy latentdrive tests
 
 bench: $(STAMP)
 	$(BIN)/latentdrive bench
+
+## learning: the README's learning results (BNN, raw and latent policies, evaluation; about an hour on 2 cores)
+learning: $(STAMP)
+	scripts/learning.sh
 
 clean:
 	rm -rf $(VENV) runs .pytest_cache .mypy_cache .ruff_cache

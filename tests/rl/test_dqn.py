@@ -34,12 +34,14 @@ def test_dqn_learns_a_deterministic_chain():
     """A 6-state chain: action 1 moves right, action 0 left; reaching the end pays 1 and
     terminates. Greedy actions must all point right and Q must approach γ^distance."""
     n, gamma = 6, 0.9
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)  # a tiny net: more threads only add overhead
     torch.manual_seed(0)
     rng = np.random.default_rng(0)
     net = nn.Sequential(nn.Linear(n, 64), nn.ReLU(), nn.Linear(64, 2))
     target = nn.Sequential(nn.Linear(n, 64), nn.ReLU(), nn.Linear(64, 2))
     target.load_state_dict(net.state_dict())
-    cfg = DQNConfig(gamma=gamma, lr=3e-3, batch_size=64, target_update=50)
+    cfg = DQNConfig(gamma=gamma, lr=3e-3, batch_size=64, target_update=25)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     eye = np.eye(n, dtype=np.float32)
     replay = Replay(5000, LatentStore(10_000, (n,)))
@@ -48,10 +50,13 @@ def test_dqn_learns_a_deterministic_chain():
             s2 = min(s + 1, n - 1) if a == 1 else max(s - 1, 0)
             ids = replay.store.add(eye[[s, s2]], np.array([-1, -1]))
             replay.add(ids[:1], np.array([a]), np.array([float(s2 == n - 1)]), ids[1:], np.array([s2 == n - 1]))
-    for step in range(1500):
-        update(net, target, opt, replay.sample(rng, cfg.batch_size), cfg)
-        if (step + 1) % cfg.target_update == 0:
-            target.load_state_dict(net.state_dict())
+    try:
+        for step in range(600):
+            update(net, target, opt, replay.sample(rng, cfg.batch_size), cfg)
+            if (step + 1) % cfg.target_update == 0:
+                target.load_state_dict(net.state_dict())
+    finally:
+        torch.set_num_threads(threads)
     q = net(torch.from_numpy(eye[: n - 1])).detach()
     assert (q.argmax(dim=1) == 1).all()
     expected = torch.tensor([gamma ** (n - 2 - s) for s in range(n - 1)])
