@@ -261,6 +261,19 @@ def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> di
     return policy_report(outcomes).as_dict()
 
 
+def _init_weights(cfg: PolicyTrainConfig) -> dict[str, torch.Tensor]:
+    """The weights ``--init-from`` names, checked before anything is written."""
+    assert cfg.init_from is not None
+    src, src_cfg = load_policy_network(cfg.init_from)
+    if src_cfg.mode != cfg.mode:
+        raise ConfigError(f"--init-from {cfg.init_from}: a {src_cfg.mode} run cannot initialize a {cfg.mode} run")
+    mine = build_network(cfg, encoder_config(cfg), load_bnn_weights=False).state_dict()
+    theirs = src.state_dict()
+    if mine.keys() != theirs.keys() or any(mine[k].shape != theirs[k].shape for k in mine):
+        raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's")
+    return theirs
+
+
 def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = False,
                  progress: bool = True, say: Callable[[str], None] = print) -> TrainResult:
     """Train (or, with ``resume``, continue) a policy run in ``run_dir``."""
@@ -273,15 +286,13 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
     enc = encoder_config(cfg)  # validates the BNN before anything is written
     if resume:
         _check_resume(root, cfg)
+    init_state = _init_weights(cfg) if cfg.init_from and not resume else None
     root.mkdir(parents=True, exist_ok=True)
     with dir_lock(root, "train-policy"), torch_settings(True, device, cfg.threads):
         net = build_network(cfg, enc).to(device)
-        if cfg.init_from and not resume:
-            src, src_cfg = load_policy_network(cfg.init_from)
-            if src_cfg.mode != cfg.mode:
-                raise ConfigError(f"--init-from {cfg.init_from}: a {src_cfg.mode} run cannot initialize a {cfg.mode} run")
+        if init_state is not None:
             try:
-                net.load_state_dict(src.state_dict())
+                net.load_state_dict(init_state)
             except RuntimeError:
                 raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's") from None
         vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend,

@@ -14,7 +14,7 @@ from .conftest import TINY
 
 TINY_SETS = [
     "--set", "observation.height=16", "--set", "observation.width=32", "--set", "observation.frames=2",
-    "--set", "vfan.hidden=32", "--set", "segment=100", "--set", "eval_every=0", "--set", "eval_episodes=4",
+    "--set", "vfan.hidden=32", "--set", "vfan.channels=[8,16,16]", "--set", "segment=100", "--set", "eval_every=0", "--set", "eval_episodes=4",
     "--set", "dqn.learning_starts=50", "--set", "dqn.buffer_size=1000", "--envs", "4",
 ]
 
@@ -110,3 +110,14 @@ def test_evaluate_writes_json_and_compares(tmp_path, capsys, raw_run):
     # A run compared with itself: no discordant pairs, p = 1.
     assert doc["compare"]["tests"]["mixed"]["failed"]["p_value"] == 1.0
     assert doc["config"]["evaluation"]["reset_seed"] >= 2**30
+
+
+def test_init_from_fine_tunes_the_same_architecture_only(tmp_path, capsys, raw_run):
+    _fails(capsys, ["train-policy", str(tmp_path / "ft"), "--mode", "latent-random", "--init-from", str(raw_run),
+                    *TINY_SETS], "cannot initialize", tmp_path)
+    _fails(capsys, ["train-policy", str(tmp_path / "ft"), "--mode", "raw", "--init-from", str(raw_run),
+                    *TINY_SETS, "--set", "vfan.hidden=16"], "architecture differs", tmp_path)
+    assert not (tmp_path / "ft").exists()
+    assert main(["train-policy", str(tmp_path / "ft"), "--mode", "raw", "--init-from", str(raw_run), "--steps", "60",
+                 *TINY_SETS, "-q"]) == 0
+    assert json.loads((tmp_path / "ft" / "config.json").read_text())["train"]["init_from"] == str(raw_run)
