@@ -29,4 +29,10 @@ for scenario in intersection merge; do
   train "$OUT/$scenario-latent" latent "$scenario" --bnn "$OUT/bnn64"
   "$BIN/latentdrive" evaluate "$OUT/$scenario-latent" --compare "$OUT/$scenario-raw" --episodes "$EPISODES" \
     --json "$OUT/$scenario-eval.json" -q
+  for mode in raw latent; do
+    for ref in random rule; do
+      "$BIN/latentdrive" evaluate "$OUT/$scenario-$mode" --compare "$ref" --policy none --episodes "$EPISODES" \
+        --json "$OUT/$scenario-$mode-vs-$ref.json" -q
+    done
+  done
 done

@@ -62,12 +62,16 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from latentdrive.scenarios import SCENARIOS, get_spec
 
     runs = [args.run] if args.run else []
+    references = [] if args.policy in ("", "none") else _split(args.policy)
     if args.compare:
         if not runs:
             raise ConfigError("--compare needs a RUN to compare with")
-        runs.append(args.compare)
+        if args.compare in REFERENCE_POLICIES:
+            if args.compare not in references:
+                references.append(args.compare)
+        else:
+            runs.append(args.compare)
     configs = [read_run_config(r) for r in runs]  # fail before any work
-    references = [] if args.policy in ("", "none") else _split(args.policy)
     for name in references:
         if name not in REFERENCE_POLICIES:
             raise ConfigError(f"unknown reference policy {name!r}: choose from {', '.join(REFERENCE_POLICIES)}")
@@ -101,10 +105,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     print(format_table(reports))
     comparison = None
     if args.compare:
-        comparison = paired(outcomes, runs[0], runs[1])
         from latentdrive.evaluate.report import compare
 
-        print(format_compare(compare(outcomes[runs[0]], outcomes[runs[1]]), names=(runs[0], runs[1])))
+        a, b = runs[0], args.compare
+        comparison = paired(outcomes, a, b)
+        print(f"paired on the same episodes: A = {a}, B = {b}")
+        print(format_compare(compare(outcomes[a], outcomes[b]), names=("A", "B")))
     if args.json:
         head = runs[0] if runs else references[0]
         doc: dict[str, Any] = {
@@ -113,7 +119,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             "policies": {name: rep.as_dict() for name, rep in reports.items()},
         }
         if comparison is not None:
-            doc["compare"] = {"a": runs[0], "b": runs[1], "tests": comparison}
+            doc["compare"] = {"a": runs[0], "b": args.compare, "tests": comparison}
         print(f"wrote {write_json(args.json, doc)}")
     if args.gif:
         if runs:
@@ -160,7 +166,8 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("--backend", choices=["fast", "highway"], default="fast")
     s.add_argument("--seed-offset", type=int, default=0, help="another fixed evaluation set (default 0)")
     s.add_argument("--json", default="", help="write the results to this JSON file")
-    s.add_argument("--compare", default="", help="a second run: paired differences and McNemar's exact test")
+    s.add_argument("--compare", default="",
+                   help="a second run, or a reference policy name: paired differences on the same episodes and McNemar's exact test")
     s.add_argument("--gif", default="", help="draw one episode of the first scenario to this GIF")
     s.add_argument("--device", default="auto")
     s.add_argument("-q", "--quiet", action="store_true")
