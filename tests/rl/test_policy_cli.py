@@ -121,3 +121,13 @@ def test_init_from_fine_tunes_the_same_architecture_only(tmp_path, capsys, raw_r
     assert main(["train-policy", str(tmp_path / "ft"), "--mode", "raw", "--init-from", str(raw_run), "--steps", "60",
                  *TINY_SETS, "-q"]) == 0
     assert json.loads((tmp_path / "ft" / "config.json").read_text())["train"]["init_from"] == str(raw_run)
+
+
+def test_compare_with_a_reference_policy(tmp_path, capsys, raw_run):
+    out = tmp_path / "c.json"
+    assert main(["evaluate", str(raw_run), "--compare", "stop", "--policy", "none", "--episodes", "4", "--envs", "2",
+                 "--json", str(out), "-q"]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["compare"]["b"] == "stop" and set(doc["policies"]) == {str(raw_run), "stop"}
+    # Always-Decelerate fails every episode: the comparison's B rate says so.
+    assert doc["compare"]["tests"]["mixed"]["failed"]["rate_b"] == 1.0
