@@ -11,7 +11,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["EVAL_RESET_SEEDS", "MAX_ENVS", "TRAIN_RESET_SEEDS", "eval_reset_seed", "train_reset_seed"]
+from latentdrive.config import ConfigError
+
+__all__ = ["EVAL_OFFSETS", "EVAL_RESET_SEEDS", "MAX_ENVS", "TRAINING_EVAL_OFFSET", "TRAIN_RESET_SEEDS",
+           "eval_reset_seed", "train_reset_seed"]
 
 #: Environments per vector env that the ranges leave room for.
 MAX_ENVS = 4096
@@ -25,8 +28,16 @@ def train_reset_seed(seed: int, segment: int) -> int:
     return TRAIN_RESET_SEEDS.start + int(state % np.uint64(len(TRAIN_RESET_SEEDS)))
 
 
+#: Evaluation sets available: offset k uses reset seeds ``start + k·MAX_ENVS + i``, so two
+#: offsets share no environment seed.
+EVAL_OFFSETS = len(EVAL_RESET_SEEDS) // MAX_ENVS
+#: The offset of the evaluation run during training (a validation set): the final
+#: evaluation's default set (offset 0) is never looked at while training.
+TRAINING_EVAL_OFFSET = 1
+
+
 def eval_reset_seed(offset: int = 0) -> int:
-    """The reset seed of an evaluation; ``offset`` picks another fixed evaluation set."""
-    if not 0 <= offset < len(EVAL_RESET_SEEDS):
-        raise ValueError(f"evaluation seed offset must be in [0, {len(EVAL_RESET_SEEDS)}), got {offset}")
-    return EVAL_RESET_SEEDS.start + offset
+    """The reset seed of an evaluation; ``offset`` picks another, disjoint, fixed evaluation set."""
+    if not 0 <= offset < EVAL_OFFSETS:
+        raise ConfigError(f"evaluation seed offset must be in [0, {EVAL_OFFSETS}), got {offset}")
+    return EVAL_RESET_SEEDS.start + offset * MAX_ENVS

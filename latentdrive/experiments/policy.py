@@ -30,18 +30,23 @@ class EvaluationSet:
     """The definition of an evaluation: which episodes, on which backend."""
 
     def __init__(self, scenarios: Sequence[str], episodes: int, envs: int, backend: str, seed_offset: int,
-                 observation: dict[str, Any] | None = None) -> None:
+                 observation: dict[str, Any] | None = None, reward: dict[str, Any] | None = None) -> None:
         self.scenarios, self.episodes, self.envs = list(scenarios), episodes, min(envs, episodes)
         self.backend, self.seed_offset = backend, seed_offset
         self.observation = observation or {}
+        #: The runs' reward weights (returns are reported under them; rates do not depend on them).
+        self.reward = reward or {}
 
     def as_dict(self) -> dict[str, Any]:
         return {"scenarios": self.scenarios, "episodes_per_scenario": self.episodes, "envs": self.envs,
                 "backend": self.backend, "reset_seed": eval_reset_seed(self.seed_offset),
                 "seed_offset": self.seed_offset}
 
+    def env_overrides(self) -> dict[str, Any]:
+        return {k: v for k, v in (("observation", self.observation), ("reward", self.reward)) if v}
+
     def run(self, make_policy: Callable[[], Policy], progress: Callable[[int], None] | None = None) -> list[EpisodeOutcome]:
-        kw: dict[str, Any] = {"observation": self.observation} if self.observation else {}
+        kw = self.env_overrides()
         return evaluate_policy(make_policy, self.scenarios, self.episodes, envs=self.envs, backend=self.backend,
                                seed_offset=self.seed_offset, progress=progress, **kw)
 
@@ -98,7 +103,7 @@ def save_policy_gif(path: str | Path, net: QNetwork | None, make_policy: Callabl
                     eval_set: EvaluationSet, title: str, device: torch.device) -> Path:
     """One evaluation episode of ``scenario`` as a GIF, seen by agent 0; with the BNN's
     reconstruction when ``net`` has a trained encoder (latent modes)."""
-    kw: dict[str, Any] = {"observation": eval_set.observation} if eval_set.observation else {}
+    kw = eval_set.env_overrides()
     vec = make_vec(scenario, 1, backend=eval_set.backend, **kw)
     scenes: list[Any] = []
     observations: list[np.ndarray] = []

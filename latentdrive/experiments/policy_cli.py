@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from pathlib import Path
 from typing import Any
 
 from latentdrive.config import ConfigError, merge_overrides, parse_override_args
@@ -60,13 +61,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     )
     from latentdrive.rl.policy import greedy_policy, load_policy_network, read_run_config
     from latentdrive.scenarios import SCENARIOS, get_spec
+    from latentdrive.seeds import MAX_ENVS, eval_reset_seed
 
     runs = [args.run] if args.run else []
     references = [] if args.policy in ("", "none") else _split(args.policy)
     if args.compare:
         if not runs:
             raise ConfigError("--compare needs a RUN to compare with")
-        if args.compare in REFERENCE_POLICIES:
+        # A run directory wins over a reference policy of the same name.
+        if args.compare in REFERENCE_POLICIES and not (Path(args.compare) / "config.json").exists():
             if args.compare not in references:
                 references.append(args.compare)
         else:
@@ -87,13 +90,24 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         get_spec(name)
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
-    if args.envs < 1:
-        raise ConfigError(f"--envs must be at least 1, got {args.envs}")
+    if not 1 <= args.envs <= MAX_ENVS:
+        raise ConfigError(f"--envs must be in [1, {MAX_ENVS}], got {args.envs}")
+    eval_reset_seed(args.seed_offset)  # a one-line error for an offset out of range
+    clash = sorted(set(runs) & set(references))
+    if clash:
+        raise ConfigError(f"{clash[0]!r} names both a run and a reference policy; give the run as ./{clash[0]}")
+    for flag, out in (("--json", args.json), ("--gif", args.gif)):
+        if out and (Path(out).is_dir() or (Path(out).parent.exists() and not Path(out).parent.is_dir())):
+            raise ConfigError(f"{flag} {out}: not a writable file path")
+    if len(set(scenarios)) != len(scenarios):
+        raise ConfigError(f"--scenarios repeats a name: {', '.join(scenarios)}")
     observations = [c["train"]["observation"] for c in configs]
     if any(o != observations[0] for o in observations):
         raise ConfigError("the runs use different observation configs; evaluate them separately")
+    rewards = [c["train"].get("reward") for c in configs]
     eval_set = EvaluationSet(scenarios, args.episodes, args.envs, args.backend, args.seed_offset,
-                             observation=observations[0] if observations else None)
+                             observation=observations[0] if observations else None,
+                             reward=rewards[0] if rewards and all(r == rewards[0] for r in rewards) else None)
     device = resolve_device(args.device)
     total = args.episodes * len(scenarios) * (len(runs) + len(references))
     makers = policy_makers(runs, references, eval_set, device)
@@ -164,7 +178,7 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("--episodes", type=int, default=100, help="episodes per scenario (default 100)")
     s.add_argument("--envs", type=int, default=16, help="environments per scenario; part of the evaluation set's definition (default 16)")
     s.add_argument("--backend", choices=["fast", "highway"], default="fast")
-    s.add_argument("--seed-offset", type=int, default=0, help="another fixed evaluation set (default 0)")
+    s.add_argument("--seed-offset", type=int, default=0, help="another fixed evaluation set, disjoint from the default (default 0; training's own evaluation uses 1)")
     s.add_argument("--json", default="", help="write the results to this JSON file")
     s.add_argument("--compare", default="",
                    help="a second run, or a reference policy name: paired differences on the same episodes and McNemar's exact test")

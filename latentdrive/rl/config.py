@@ -40,6 +40,8 @@ class PolicyTrainConfig(Config):
     def _known(cls, v: tuple[str, ...]) -> tuple[str, ...]:
         for name in v:
             get_spec(name)  # raises ConfigError naming the scenario
+        if len(set(v)) != len(v):
+            raise ValueError(f"scenarios repeat a name: {', '.join(v)}")
         return v
 
     @field_validator("device")

@@ -135,10 +135,11 @@ class Replay:
 
     Args:
         capacity: transitions kept.
-        store: where the observations live. Give a :class:`FrameStore` at least
-            ``2·capacity + (2T + 1)·agents`` frames: each transition adds at most two
-            (its next observation, and the first of a new episode), and a stack reaches
-            ``T-1`` frames back.
+        store: where the observations live. Every transition adds one observation (its
+            next) and every ended episode ``n_av`` more (the new episode's first), at most
+            one per transition over the replay's span plus one step's worth, and a stack
+            reaches ``T-1`` frames back: give a :class:`FrameStore` at least
+            ``2·capacity + (2T + 1)·agents`` frames (``agents`` = envs × AVs).
     """
 
     def __init__(self, capacity: int, store: ObservationStore) -> None:

@@ -15,6 +15,7 @@ from __future__ import annotations
 import copy
 import csv
 import json
+import re
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -54,12 +55,14 @@ from latentdrive.rl.policy import (
 from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Replay
 from latentdrive.rollout import StepRecord, rollout
 from latentdrive.runlock import dir_lock
-from latentdrive.seeds import train_reset_seed
+from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed
 from latentdrive.vec import make_vec
 
 __all__ = ["Learner", "TrainResult", "learner_steps", "make_store", "train_policy"]
 
-REPLAY = "replay.safetensors"
+#: Replay of segment k: ``replay-<k>.safetensors``. A new name per segment, so that a kill
+#: while saving never leaves a checkpoint beside a replay it does not belong to.
+REPLAY_PATTERN = re.compile(r"replay-(\d{1,9})\.safetensors")
 METRICS = "metrics.csv"
 EVALS = "eval.csv"
 _METRIC_COLUMNS = ("transitions", "updates", "episodes", "epsilon", "loss", "train_failure_rate",
@@ -74,8 +77,9 @@ class TrainResult(dict[str, Any]):
 def make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> ObservationStore:
     cap = cfg.dqn.buffer_size
     if net.mode in LATENT_MODES:
-        # Each transition adds at most two observations (next, and a new episode's first).
-        return LatentStore(2 * cap + 2 * n_slots, net.stored_shape)
+        # Per step: one next observation per transition and n_av first observations per
+        # ended environment; over the replay's span that is at most 2·cap + 3·n_slots.
+        return LatentStore(2 * cap + 4 * n_slots, net.stored_shape)
     t = cfg.observation.frames
     return FrameStore(2 * cap + (2 * t + 1) * n_slots, cfg.observation.shape)
 
@@ -150,15 +154,20 @@ class Learner:
 
     def save(self, run_dir: Path, segment: int) -> None:
         arrays = {k: np.ascontiguousarray(v) for k, v in self.replay.state().items()}
-        # The replay first: a checkpoint is only valid beside the replay it names.
-        atomic_write_bytes(run_dir / REPLAY, np_save(arrays, metadata={"replay_added": str(self.replay.added)}))
+        # The replay first, under a new name; then the checkpoint that names it (atomic);
+        # only then are older replays removed. A kill anywhere leaves a consistent pair.
+        name = f"replay-{segment}.safetensors"
+        atomic_write_bytes(run_dir / name, np_save(arrays, metadata={"replay_added": str(self.replay.added)}))
         save_checkpoint(
             run_dir / CHECKPOINT, self.net, self.optimizer, step=self.updates, epoch=segment,
             config=self.cfg.model_dump(mode="json"), numpy_generator=self.rng,
             extra={"transitions": self.transitions, "updates": self.updates, "episodes": self.episodes,
-                   "segment": segment, "replay_added": self.replay.added},
+                   "segment": segment, "replay_added": self.replay.added, "replay": name},
             extra_tensors={f"target/{k}": v for k, v in self.target.state_dict().items()},
         )
+        for old in run_dir.iterdir():
+            if REPLAY_PATTERN.fullmatch(old.name) and old.name != name:
+                old.unlink(missing_ok=True)
 
     def load(self, run_dir: Path) -> int:
         """Restore from the run's checkpoint; returns the next segment index."""
@@ -168,7 +177,10 @@ class Learner:
             self.target.load_state_dict(target_sd, strict=True)
         except RuntimeError:
             raise CheckpointError(f"{run_dir / CHECKPOINT}: target network does not match the model") from None
-        path = run_dir / REPLAY
+        name = str(info.extra.get("replay", ""))
+        if not REPLAY_PATTERN.fullmatch(name):  # never follow a path the file names
+            raise CheckpointError(f"{run_dir / CHECKPOINT}: names no valid replay file ({name!r})")
+        path = run_dir / name
         try:
             arrays = np_load_file(str(path))
             self.replay.load_state(arrays)
@@ -255,7 +267,7 @@ class _Log:
 def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> dict[str, Any]:
     net.eval()
     outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenarios, cfg.eval_episodes,
-                               envs=min(16, cfg.eval_episodes), backend=cfg.backend,
+                               envs=min(16, cfg.eval_episodes), backend=cfg.backend, seed_offset=TRAINING_EVAL_OFFSET,
                                observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
     net.train()
     return policy_report(outcomes).as_dict()
@@ -267,6 +279,9 @@ def _init_weights(cfg: PolicyTrainConfig) -> dict[str, torch.Tensor]:
     src, src_cfg = load_policy_network(cfg.init_from)
     if src_cfg.mode != cfg.mode:
         raise ConfigError(f"--init-from {cfg.init_from}: a {src_cfg.mode} run cannot initialize a {cfg.mode} run")
+    if cfg.mode == "latent" and src_cfg.bnn != cfg.bnn:
+        # Its weights include the encoder: the run would not use the BNN its config names.
+        raise ConfigError(f"--init-from {cfg.init_from}: it was trained on BNN {src_cfg.bnn}, not {cfg.bnn}")
     mine = build_network(cfg, encoder_config(cfg), load_bnn_weights=False).state_dict()
     theirs = src.state_dict()
     if mine.keys() != theirs.keys() or any(mine[k].shape != theirs[k].shape for k in mine):

@@ -44,6 +44,7 @@ def test_a_1x1x1_body_is_exactly_a_dense_network_of_the_latents():
     convs = [m for m in body.net if isinstance(m, torch.nn.Conv3d)]
     h = z
     for c in convs:
+        assert c.bias is not None
         h = torch.relu(h @ c.weight.flatten(1).T + c.bias)
     lin = [m for m in body.net if isinstance(m, torch.nn.Linear)]
     q = lin[1](torch.relu(lin[0](h)))

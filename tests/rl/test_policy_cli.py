@@ -131,3 +131,11 @@ def test_compare_with_a_reference_policy(tmp_path, capsys, raw_run):
     assert doc["compare"]["b"] == "stop" and set(doc["policies"]) == {str(raw_run), "stop"}
     # Always-Decelerate fails every episode: the comparison's B rate says so.
     assert doc["compare"]["tests"]["mixed"]["failed"]["rate_b"] == 1.0
+
+
+def test_bad_evaluation_options_fail_before_any_work(tmp_path, capsys, raw_run):
+    _fails(capsys, ["evaluate", str(raw_run), "--seed-offset", "-1", "--episodes", "2"], "offset", tmp_path)
+    _fails(capsys, ["evaluate", str(raw_run), "--json", str(tmp_path), "--episodes", "2"], "--json", tmp_path)
+    _fails(capsys, ["evaluate", "--scenarios", "merge,merge", "--episodes", "2"], "repeats", tmp_path)
+    _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "raw", "--scenarios", "merge,merge", *TINY_SETS],
+           "repeat", tmp_path)

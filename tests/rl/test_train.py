@@ -102,3 +102,28 @@ def test_training_and_evaluation_seeds_are_disjoint(tmp_path, tiny):
 
     train = episode_seeds(train_reset_seed(0, 0)) | episode_seeds(train_reset_seed(0, 1))
     assert train and not train & episode_seeds(eval_reset_seed(0))
+
+
+def test_each_checkpoint_names_its_own_replay_and_older_ones_go(tmp_path, tiny):
+    cfg = tiny(mode="raw", steps=250)
+    train_policy(cfg, tmp_path / "r", **_quiet())
+    replays = sorted(p.name for p in (tmp_path / "r").glob("replay-*.safetensors"))
+    from latentdrive.bnn.checkpoint import read_checkpoint
+
+    extra = read_checkpoint(tmp_path / "r" / CHECKPOINT)[1]["extra"]
+    assert replays == [extra["replay"]] == ["replay-2.safetensors"]
+    # A kill after the next replay was written but before its checkpoint: the run still
+    # resumes from the pair that belongs together.
+    (tmp_path / "r" / "replay-3.safetensors").write_bytes(b"half-written")
+    train_policy(tiny(mode="raw", steps=350), tmp_path / "r", resume=True, **_quiet())
+
+
+def test_evaluation_offsets_are_disjoint_sets():
+    from latentdrive.seeds import MAX_ENVS, TRAINING_EVAL_OFFSET
+
+    assert eval_reset_seed(1) - eval_reset_seed(0) == MAX_ENVS
+    assert TRAINING_EVAL_OFFSET != 0
+    from latentdrive.config import ConfigError
+
+    with pytest.raises(ConfigError, match="offset"):
+        eval_reset_seed(-1)
