@@ -177,8 +177,9 @@ class Learner:
             self.target.load_state_dict(target_sd, strict=True)
         except RuntimeError:
             raise CheckpointError(f"{run_dir / CHECKPOINT}: target network does not match the model") from None
-        name = str(info.extra.get("replay", ""))
-        if not REPLAY_PATTERN.fullmatch(name):  # never follow a path the file names
+        # Checkpoints written before replays were named per segment used one fixed name.
+        name = str(info.extra.get("replay", "replay.safetensors"))
+        if not (REPLAY_PATTERN.fullmatch(name) or name == "replay.safetensors"):  # never follow a path the file names
             raise CheckpointError(f"{run_dir / CHECKPOINT}: names no valid replay file ({name!r})")
         path = run_dir / name
         try:
