@@ -170,13 +170,22 @@ class Learner:
                 old.unlink(missing_ok=True)
 
     def load(self, run_dir: Path) -> int:
-        """Restore from the run's checkpoint; returns the next segment index."""
+        """Restore from the run's checkpoint; returns the next segment index.
+
+        The replay is restored only when there is training left to do: a finished run
+        resumes to nothing and needs none.
+        """
         info = load_checkpoint(run_dir / CHECKPOINT, self.net, self.optimizer, numpy_generator=self.rng)
         target_sd = {k.removeprefix("target/"): v for k, v in info.extra_tensors.items() if k.startswith("target/")}
         try:
             self.target.load_state_dict(target_sd, strict=True)
         except RuntimeError:
             raise CheckpointError(f"{run_dir / CHECKPOINT}: target network does not match the model") from None
+        self.transitions = int(info.extra["transitions"])
+        self.updates = int(info.extra["updates"])
+        self.episodes = int(info.extra["episodes"])
+        if self.transitions >= self.cfg.steps:
+            return int(info.extra["segment"]) + 1
         # Checkpoints written before replays were named per segment used one fixed name.
         name = str(info.extra.get("replay", "replay.safetensors"))
         if not (REPLAY_PATTERN.fullmatch(name) or name == "replay.safetensors"):  # never follow a path the file names
@@ -191,9 +200,6 @@ class Learner:
             raise CheckpointError(f"{path}: unusable replay ({str(exc).splitlines()[0]})") from None
         if self.replay.added != int(info.extra["replay_added"]):
             raise CheckpointError(f"{path}: replay does not belong to the checkpoint (written by another save)")
-        self.transitions = int(info.extra["transitions"])
-        self.updates = int(info.extra["updates"])
-        self.episodes = int(info.extra["episodes"])
         return int(info.extra["segment"]) + 1
 
 
