@@ -20,6 +20,7 @@ run: $(STAMP)
 	$(BIN)/latentdrive show merge --out runs/show-merge.png
 	$(BIN)/latentdrive bench --steps 20
 	$(BIN)/latentdrive bench --backend fast --steps 20 --batch-size 32
+	$(BIN)/latentdrive evaluate --scenarios intersection,merge --episodes 32 -q
 
 ## test: the default (fast) test suite
 test: $(STAMP)
