@@ -34,6 +34,7 @@ from __future__ import annotations
 from typing import Literal
 
 import torch
+import torch.nn.functional as F
 from pydantic import Field
 from torch import Tensor, nn
 
@@ -82,13 +83,24 @@ class VFANBody(nn.Module):
         conv2, size = _conv(cfg.channels[0], cfg.channels[1], size, (kt, k2, k2), (1, s2, s2))
         conv3, size = _conv(cfg.channels[1], cfg.channels[2], size, (kt, k3, k3), (1, 1, 1))
         flat = cfg.channels[2] * size[0] * size[1] * size[2]
+        self.pointwise = input_shape[1:] == (1, 1, 1)
         self.net = nn.Sequential(
             conv1, nn.ReLU(), conv2, nn.ReLU(), conv3, nn.ReLU(), nn.Flatten(),
             nn.Linear(flat, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, n_actions),
         )
 
     def forward(self, x: Tensor) -> Tensor:
-        return self.net(x)
+        if not self.pointwise:
+            return self.net(x)
+        # A 1×1×1 volume: each convolution is exactly a dense layer over the channels;
+        # computing it as one skips the 3D-convolution machinery (same parameters, same math).
+        h = x.flatten(1)
+        for layer in self.net:
+            if isinstance(layer, nn.Conv3d):
+                h = F.linear(h, layer.weight.flatten(1), layer.bias)
+            elif not isinstance(layer, nn.Flatten):
+                h = layer(h)
+        return h
 
 
 class QNetwork(nn.Module):

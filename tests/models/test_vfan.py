@@ -49,6 +49,10 @@ def test_a_1x1x1_body_is_exactly_a_dense_network_of_the_latents():
     lin = [m for m in body.net if isinstance(m, torch.nn.Linear)]
     q = lin[1](torch.relu(lin[0](h)))
     torch.testing.assert_close(body(z.view(4, 6, 1, 1, 1)), q)
+    # The dense shortcut the body takes at 1×1×1 is the convolution path's math.
+    assert body.pointwise
+    body.pointwise = False
+    torch.testing.assert_close(body(z.view(4, 6, 1, 1, 1)), q)
 
 
 def test_encoders_are_frozen_in_latent_modes_and_trained_end_to_end():
