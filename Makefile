@@ -33,6 +33,7 @@ test-all: $(STAMP)
 lint: $(STAMP)
 	$(BIN)/ruff check latentdrive tests
 	$(BIN)/mypy latentdrive tests
+	$(BIN)/lint-imports
 
 bench: $(STAMP)
 	$(BIN)/latentdrive bench
