@@ -8,8 +8,6 @@ reconstruction of the same channels.
 
 from __future__ import annotations
 
-import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,6 +16,7 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
+from latentdrive.bnn.checkpoint import atomic_write_bytes
 from latentdrive.config import ObservationConfig
 from latentdrive.observe import CHANNELS
 from latentdrive.scene import Scene
@@ -134,12 +133,6 @@ def save_episode_gif(
         frames.append(_render_frame(scene, obs, recon, obs_cfg, agent, heading))
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp.gif", dir=out.parent)
-    os.close(fd)
-    try:
-        iio.imwrite(tmp_name, np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
-        os.replace(tmp_name, out)
-    except BaseException:
-        Path(tmp_name).unlink(missing_ok=True)
-        raise
+    data = iio.imwrite("<bytes>", np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)
+    atomic_write_bytes(out, data)
     return out
