@@ -55,6 +55,7 @@ from latentdrive.rl.policy import (
 from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Replay
 from latentdrive.rollout import StepRecord, rollout
 from latentdrive.runlock import dir_lock
+from latentdrive.scenarios import get_spec
 from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed
 from latentdrive.vec import make_vec
 
@@ -223,12 +224,25 @@ def _write_config(run_dir: Path, cfg: PolicyTrainConfig, net: QNetwork, enc: Any
         "encoder": None if enc is None else enc.model_dump(mode="json"),
         "parameters": net.parameter_count(),
         "config_hash": config_hash(cfg),
+        # Scenarios are named in the config; their specs can change between versions.
+        "scenario_hashes": _scenario_hashes(cfg),
     }
     atomic_write_text(run_dir / CONFIG, json.dumps(data, indent=1) + "\n")
 
 
+def _scenario_hashes(cfg: PolicyTrainConfig) -> dict[str, str]:
+    return {name: config_hash(get_spec(name)) for name in cfg.scenarios}
+
+
 def _check_resume(run_dir: Path, cfg: PolicyTrainConfig) -> None:
-    saved = read_run_config(run_dir)["train"]
+    data = read_run_config(run_dir)
+    old = data.get("scenario_hashes")
+    if old is not None:
+        moved = sorted(n for n, h in _scenario_hashes(cfg).items() if old.get(n) != h)
+        if moved:
+            raise ConfigError(f"{run_dir}: the scenario spec of {', '.join(moved)} changed since this run "
+                              "was trained; train a new run")
+    saved = data["train"]
     now = cfg.model_dump(mode="json")
     # The budget may grow on resumption; everything else must match.
     changed = sorted(k for k in now if k != "steps" and saved.get(k) != now[k])

@@ -139,3 +139,14 @@ def test_bad_evaluation_options_fail_before_any_work(tmp_path, capsys, raw_run):
     _fails(capsys, ["evaluate", "--scenarios", "merge,merge", "--episodes", "2"], "repeats", tmp_path)
     _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "raw", "--scenarios", "merge,merge", *TINY_SETS],
            "repeat", tmp_path)
+
+
+def test_resume_refuses_a_run_whose_scenario_spec_changed(tmp_path, capsys, raw_run):
+    run = tmp_path / "old"
+    shutil.copytree(raw_run, run)
+    cfg = json.loads((run / "config.json").read_text())
+    assert set(cfg["scenario_hashes"]) == {"intersection"}
+    cfg["scenario_hashes"]["intersection"] = "0" * 16  # as if trained on an earlier spec
+    (run / "config.json").write_text(json.dumps(cfg))
+    _fails(capsys, ["train-policy", str(run), "--resume", "--steps", "200"], "scenario spec of intersection changed",
+           tmp_path)
