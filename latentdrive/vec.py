@@ -119,17 +119,19 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         agents = AgentStep(*(np.stack(f) for f in zip(*(inf["agents"] for inf in infos), strict=True)))
         done = [i for i in range(self.num_envs) if terms[i] or truncs[i]]
         final_obs = np.full(self.num_envs, None, dtype=object)
-        ended: list[dict[str, Any] | None] = [None] * self.num_envs
+        final_info: dict[str, Any] = {}
         if done:
             seeds = [self._next_seed(i) for i in done]
             for i, scene, s in zip(done, self._batch.reset(seeds, env_ids=done), seeds, strict=True):
-                final_obs[i], ended[i] = obs_list[i], info_list[i]
+                final_obs[i] = obs_list[i]
+                # gymnasium's own dict-of-arrays merge, with its ``_key`` masks.
+                final_info = self._add_info(final_info, info_list[i], i)
                 obs_list[i], info_list[i] = self._episodes[i].start(scene, s)
         info = self._merge(info_list)
         info["agents"] = agents
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[done] = True
-        info.update(final_obs=final_obs, _final_obs=mask, final_info=self._merge_some(ended), _final_info=mask.copy())
+        info.update(final_obs=final_obs, _final_obs=mask, final_info=final_info, _final_info=mask.copy())
         return (np.stack(obs_list), np.asarray(rewards, dtype=np.float64), np.asarray(terms, dtype=bool),
                 np.asarray(truncs, dtype=bool), info)
 
@@ -137,24 +139,6 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         if self._rngs is None:
             raise RuntimeError("call reset() first")
         return int(self._rngs[i].integers(2**63 - 1))
-
-    def _merge_some(self, infos: list[dict[str, Any] | None]) -> dict[str, Any]:
-        """gymnasium's dict-of-arrays form of the infos present in ``infos`` (``_key`` masks)."""
-        present = [i for i, info in enumerate(infos) if info is not None]
-        out: dict[str, Any] = {}
-        if not present:
-            return out
-        mask = np.zeros(self.num_envs, dtype=bool)
-        mask[present] = True
-        first = infos[present[0]]
-        assert first is not None
-        for key, value in first.items():
-            arr = np.empty(self.num_envs, dtype=object) if not isinstance(value, np.ndarray | int | float | bool | np.number) \
-                else np.zeros((self.num_envs, *np.shape(value)), dtype=np.asarray(value).dtype)
-            for i in present:
-                arr[i] = infos[i][key]  # type: ignore[index]
-            out[key], out[f"_{key}"] = arr, mask.copy()
-        return out
 
     def _merge(self, infos: list[dict[str, Any]]) -> dict[str, Any]:
         out: dict[str, Any] = {}

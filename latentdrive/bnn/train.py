@@ -22,16 +22,14 @@ same weights as an uninterrupted run.
 
 from __future__ import annotations
 
-import contextlib
 import csv
 import io
 import json
 import math
-import os
 import resource
 import sys
 import time
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any, Literal
 
@@ -53,6 +51,7 @@ from latentdrive.bnn.prefetch import prefetch
 from latentdrive.config import Config, config_hash, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.runlock import dir_lock
+from latentdrive.runtime import check_device, resolve_device, torch_settings
 
 __all__ = [
     "CHECKPOINT_NAME",
@@ -60,7 +59,6 @@ __all__ = [
     "METRICS_NAME",
     "BNNTrainConfig",
     "load_trained_bottleneck",
-    "resolve_device",
     "train_bnn",
 ]
 
@@ -172,13 +170,7 @@ class BNNTrainConfig(Config):
         "for the validation scenario distance.",
     )
 
-    @field_validator("device")
-    @classmethod
-    def _check_device(cls, v: str) -> str:
-        ok = v in ("auto", "cpu", "cuda") or (v.startswith("cuda:") and v[5:].isdigit())
-        if not ok:
-            raise ValueError(f"expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {v!r}")
-        return v
+    _check_device = field_validator("device")(check_device)
 
     @property
     def total_epochs(self) -> int:
@@ -198,13 +190,6 @@ class BNNTrainConfig(Config):
         return "pretrain" if epoch < self.pretrain_epochs else "mixed"
 
 
-def resolve_device(spec: str) -> torch.device:
-    """``'auto'`` → CUDA if available, else CPU; otherwise ``torch.device(spec)``."""
-    if spec == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    return torch.device(spec)
-
-
 # ---------------------------------------------------------------------------------------
 # Run bookkeeping
 
@@ -213,29 +198,6 @@ def _peak_rss_mb() -> float:
     rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     # Linux reports KiB, macOS bytes.
     return rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024
-
-
-@contextlib.contextmanager
-def torch_settings(enabled: bool, device: torch.device, num_threads: int) -> Iterator[None]:
-    """Set deterministic algorithms and the thread count for a run; restore the process's after."""
-    prev = torch.are_deterministic_algorithms_enabled()
-    prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
-    prev_bench = torch.backends.cudnn.benchmark
-    prev_threads = torch.get_num_threads()
-    if num_threads > 0:
-        torch.set_num_threads(num_threads)
-    if enabled:
-        if device.type == "cuda":
-            # cuBLAS needs a fixed workspace for reproducible matmuls.
-            os.environ.setdefault("CUBLAS_WORKSPACE_CONFIG", ":4096:8")
-            torch.backends.cudnn.benchmark = False
-        torch.use_deterministic_algorithms(True, warn_only=device.type != "cpu")
-    try:
-        yield
-    finally:
-        torch.use_deterministic_algorithms(prev, warn_only=prev_warn)
-        torch.backends.cudnn.benchmark = prev_bench
-        torch.set_num_threads(prev_threads)
 
 
 class _Meter:

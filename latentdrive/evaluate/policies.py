@@ -11,7 +11,6 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import partial
 
 import numpy as np
 from numpy.typing import NDArray
@@ -53,7 +52,7 @@ def _rule(seed: int) -> Policy:
         for scene, name in zip(inp.scenes, inp.scenarios, strict=True):
             if name not in cruise:
                 cruise[name] = max(get_spec(name).av_target_speeds)
-            out.append(partial(rule_policy, cruise_speed=cruise[name], lane_change_prob=0.0)(scene, rng))
+            out.append(rule_policy(scene, rng, cruise_speed=cruise[name], lane_change_prob=0.0))
         return np.stack(out)
 
     return policy

@@ -48,7 +48,6 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from latentdrive.bnn.train import resolve_device
     from latentdrive.evaluate.policies import REFERENCE_POLICIES, reference_policy
     from latentdrive.evaluate.report import format_compare, format_table
     from latentdrive.experiments.policy import (
@@ -60,6 +59,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         write_json,
     )
     from latentdrive.rl.policy import greedy_policy, load_policy_network, read_run_config
+    from latentdrive.runtime import resolve_device
     from latentdrive.scenarios import SCENARIOS, get_spec
     from latentdrive.seeds import MAX_ENVS, eval_reset_seed
 

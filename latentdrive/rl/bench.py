@@ -21,11 +21,11 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
-from latentdrive.bnn.train import resolve_device, torch_settings
 from latentdrive.config import merge_overrides, validate
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import build_network, encoder_config
 from latentdrive.rl.train import Learner, learner_steps
+from latentdrive.runtime import resolve_device, torch_settings
 from latentdrive.vec import make_vec
 
 __all__ = ["TrainBenchRow", "bench_training", "format_train_bench"]
@@ -80,8 +80,7 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> Train
         }
         t0 = time.perf_counter()
         for _ in range(updates):
-            learner.transitions += cfg.dqn.train_every
-            learner._learn()
+            learner.update_step()
         ups = updates / (time.perf_counter() - t0)
         vec.close()
     return TrainBenchRow(mode=cfg.mode, device=str(device), trainable_parameters=net.parameter_count()["trainable"],

@@ -9,6 +9,7 @@ from pydantic import Field, field_validator, model_validator
 from latentdrive.config import Config, ObservationConfig
 from latentdrive.models.vfan import MODES, Mode, VFANConfig
 from latentdrive.rl.dqn import DQNConfig
+from latentdrive.runtime import check_device
 from latentdrive.scenarios import RewardConfig, get_spec
 
 __all__ = ["PolicyTrainConfig"]
@@ -44,12 +45,7 @@ class PolicyTrainConfig(Config):
             raise ValueError(f"scenarios repeat a name: {', '.join(v)}")
         return v
 
-    @field_validator("device")
-    @classmethod
-    def _check_device(cls, v: str) -> str:
-        if not (v in ("auto", "cpu", "cuda") or (v.startswith("cuda:") and v[5:].isdigit())):
-            raise ValueError(f"expected 'auto', 'cpu', 'cuda' or 'cuda:N', got {v!r}")
-        return v
+    _check_device = field_validator("device")(check_device)
 
     @model_validator(mode="after")
     def _check_mode(self) -> PolicyTrainConfig:

@@ -33,7 +33,6 @@ from latentdrive.bnn.checkpoint import (
     load_checkpoint,
     save_checkpoint,
 )
-from latentdrive.bnn.train import resolve_device, torch_settings
 from latentdrive.config import ConfigError, config_hash
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
@@ -55,6 +54,7 @@ from latentdrive.rl.policy import (
 from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Replay
 from latentdrive.rollout import StepRecord, rollout
 from latentdrive.runlock import dir_lock
+from latentdrive.runtime import resolve_device, torch_settings
 from latentdrive.scenarios import get_spec
 from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed
 from latentdrive.vec import make_vec
@@ -137,19 +137,22 @@ class Learner:
         return cur
 
     def learn(self) -> None:
+        """The updates the transitions collected so far are owed (one per ``train_every``)."""
         t0 = time.perf_counter()
-        self._learn()
-        self.learn_seconds += time.perf_counter() - t0
-
-    def _learn(self) -> None:
         d = self.cfg.dqn
         owed = (self.transitions - d.learning_starts) // d.train_every - self.updates
         for _ in range(max(0, owed)):
-            batch = self.replay.sample(self.rng, d.batch_size, self.device)
-            self.losses.append(update(self.net, self.target, self.optimizer, batch, d))
-            self.updates += 1
-            if self.updates % d.target_update == 0:
-                self.target.load_state_dict(self.net.state_dict())
+            self.update_step()
+        self.learn_seconds += time.perf_counter() - t0
+
+    def update_step(self) -> None:
+        """One sampled minibatch, one gradient step, and the target copy when it is due."""
+        d = self.cfg.dqn
+        batch = self.replay.sample(self.rng, d.batch_size, self.device)
+        self.losses.append(update(self.net, self.target, self.optimizer, batch, d))
+        self.updates += 1
+        if self.updates % d.target_update == 0:
+            self.target.load_state_dict(self.net.state_dict())
 
     # ---- checkpoints ---------------------------------------------------------------
 

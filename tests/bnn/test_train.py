@@ -27,6 +27,7 @@ from latentdrive.bnn.losses import (
 from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
 from latentdrive.config import ConfigError, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
+from latentdrive.runtime import resolve_device
 
 SHAPE = (4, 2, 16, 32)
 MODEL = BottleneckConfig(input_shape=SHAPE[1:], latent_dim=16, channels=(8, 16, 16))
@@ -318,7 +319,7 @@ def test_train_config_validation() -> None:
     for data, field in bad:
         with pytest.raises(ConfigError, match=field):
             validate(BNNTrainConfig, data)
-    assert train_mod.resolve_device("cpu") == torch.device("cpu")
+    assert resolve_device("cpu") == torch.device("cpu")
 
 
 def test_cosine_schedule_runs_from_lr_down_to_its_final_fraction() -> None:

@@ -115,7 +115,9 @@ def test_each_checkpoint_names_its_own_replay_and_older_ones_go(tmp_path, tiny):
     # A kill after the next replay was written but before its checkpoint: the run still
     # resumes from the pair that belongs together.
     (tmp_path / "r" / "replay-3.safetensors").write_bytes(b"half-written")
-    train_policy(tiny(mode="raw", steps=350), tmp_path / "r", resume=True, **_quiet())
+    result = train_policy(tiny(mode="raw", steps=350), tmp_path / "r", resume=True, **_quiet())
+    assert result["transitions"] >= 350
+    assert [p.name for p in (tmp_path / "r").glob("replay-*.safetensors")] == ["replay-3.safetensors"]
 
 
 def test_evaluation_offsets_are_disjoint_sets():
