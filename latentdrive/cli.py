@@ -89,6 +89,19 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         if args.json:
             Path(args.json).write_text(json.dumps([r.as_dict() for r in trows], indent=1))
         return 0
+    if args.plan:
+        from latentdrive.evaluate.plan_bench import bench_planner, format_plan_bench
+        from latentdrive.evaluate.planner import planner_config
+
+        if args.batch_size < 1:
+            raise LatentDriveError(f"--batch-size must be at least 1, got {args.batch_size}")
+        pcfg = planner_config(parse_override_args(args.overrides))
+        _say(f"benchmarking the planner on {', '.join(names)} ...")
+        prows = bench_planner(names, envs=args.batch_size, decisions=args.steps, cfg=pcfg, progress=_say)
+        print(format_plan_bench(prows, pcfg))
+        if args.json:
+            Path(args.json).write_text(json.dumps([r.as_dict() for r in prows], indent=1))
+        return 0
     cfg = validate(ObservationConfig, parse_override_args(args.overrides), prefix="observation.")
     _say(f"benchmarking {len(names)} scenario(s) on the {args.backend} backend ...")
     if args.backend == "fast":
@@ -227,6 +240,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--train", action="store_true",
                    help="benchmark the training loop instead: updates/s, agent-transitions/s and where the time goes, per mode "
                         "(--steps: agent-transitions measured; --batch-size: envs; --set: train-policy overrides)")
+    s.add_argument("--plan", action="store_true",
+                   help="benchmark the lookahead planner instead: ms per decision vs one simulated step "
+                        "(--steps: decisions; --batch-size: envs; --set: planner settings, depth=5)")
     s.add_argument("--modes", default="", help="with --train: comma-separated modes (default raw,latent,end-to-end)")
     s.add_argument("--bnn", default="", help="with --train: a BNN run for mode latent (default: an untrained encoder, same cost)")
     _add_set(s, "observation override, repeatable (--set height=64 --set resolution=1.0); with --train, train-policy overrides")

@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 from latentdrive.env import AgentStep
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.scene import Scene
+from latentdrive.sim import BatchBackend
 from latentdrive.vec import DrivingVecEnv
 
 __all__ = ["Policy", "PolicyInput", "StepRecord", "rollout", "scene_policy"]
@@ -38,6 +39,9 @@ class PolicyInput(NamedTuple):
     active: NDArray[np.bool_]
     #: ``(num_envs,)`` scenario names.
     scenarios: NDArray[np.object_]
+    #: The vector env's simulator, for references with privileged access (the lookahead
+    #: planner branches its state); learned policies never read it.
+    simulator: BatchBackend | None = None
 
 
 Policy = Callable[[PolicyInput], NDArray[np.int64]]
@@ -133,7 +137,7 @@ def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[St
         scenes = info["scene"]
         seeds = info["episode_seed"]
         scenarios = info["scenario"]
-        actions = np.asarray(policy(PolicyInput(obs, scenes, active, scenarios)), dtype=np.int64)
+        actions = np.asarray(policy(PolicyInput(obs, scenes, active, scenarios, env.simulator)), dtype=np.int64)
         obs_after, _, term, trunc, info = env.step(actions)
         agents: AgentStep = info["agents"]
         ended = term | trunc

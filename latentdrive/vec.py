@@ -23,7 +23,7 @@ from latentdrive.actions import N_ACTIONS
 from latentdrive.config import ConfigError
 from latentdrive.env import AgentStep, Episode, make_env_config
 from latentdrive.scenarios import ScenarioSpec
-from latentdrive.sim import make_batch
+from latentdrive.sim import BatchBackend, make_batch
 
 __all__ = ["DrivingVecEnv", "make_vec"]
 
@@ -81,6 +81,11 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         #: Seconds spent in the simulator and in building observations (rewards included) by
         #: step() since construction; resets excluded. For benchmarks.
         self.timings = {"simulate": 0.0, "observe": 0.0}
+
+    @property
+    def simulator(self) -> BatchBackend:
+        """The backend stepping these environments (read-only use: planners branch it)."""
+        return self._batch
 
     def reset(self, *, seed: int | Sequence[int | None] | None = None,
               options: dict[str, Any] | None = None) -> tuple[np.ndarray, dict[str, Any]]:

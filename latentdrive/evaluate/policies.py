@@ -5,7 +5,10 @@
 - ``stop``: always Decelerate. It rarely crashes and never completes a mission, which is
   why the failure rate, not the crash rate, is the headline;
 - ``rule``: the rule-based car follower of :func:`latentdrive.data.policies.rule_policy`,
-  cruising at the scenario's top AV target speed, without lane changes.
+  cruising at the scenario's top AV target speed, without lane changes;
+- ``plan``: the lookahead planner of :mod:`latentdrive.evaluate.planner`, which tries
+  action sequences on copies of the simulation (fast backend only). It bounds how many
+  failures are avoidable: read a policy's failure rate against the planner's.
 """
 
 from __future__ import annotations
@@ -18,12 +21,15 @@ from numpy.typing import NDArray
 from latentdrive.actions import ACTION_NAMES, N_ACTIONS
 from latentdrive.config import ConfigError
 from latentdrive.data.policies import rule_policy
+from latentdrive.evaluate.planner import PlannerConfig, planner_policy
 from latentdrive.rollout import Policy, PolicyInput
-from latentdrive.scenarios import get_spec
+from latentdrive.scenarios import RewardConfig, get_spec
 
-__all__ = ["REFERENCE_POLICIES", "reference_policy"]
+__all__ = ["REFERENCE_POLICIES", "SIMULATOR_POLICIES", "reference_policy"]
 
-REFERENCE_POLICIES: tuple[str, ...] = ("random", "idle", "stop", "rule")
+REFERENCE_POLICIES: tuple[str, ...] = ("random", "idle", "stop", "rule", "plan")
+#: The references that need the fast backend (they branch its state).
+SIMULATOR_POLICIES: tuple[str, ...] = ("plan",)
 _IDLE, _SLOWER = ACTION_NAMES.index("Idle"), ACTION_NAMES.index("Decelerate")
 
 
@@ -58,13 +64,19 @@ def _rule(seed: int) -> Policy:
     return policy
 
 
-def reference_policy(name: str, seed: int = 0) -> Callable[[], Policy]:
-    """A factory of the named reference policy (fresh random stream per call)."""
+def reference_policy(name: str, seed: int = 0, *, planner: PlannerConfig | None = None,
+                     reward: RewardConfig | None = None) -> Callable[[], Policy]:
+    """A factory of the named reference policy (fresh random stream per call).
+
+    ``planner`` and ``reward`` configure ``plan`` (its settings, and the reward it plans
+    under: the evaluated runs' own); the other references ignore them.
+    """
     makers: dict[str, Callable[[], Policy]] = {
         "random": lambda: _random(seed),
         "idle": lambda: _constant(_IDLE),
         "stop": lambda: _constant(_SLOWER),
         "rule": lambda: _rule(seed),
+        "plan": lambda: planner_policy(planner, reward),
     }
     if name not in makers:
         raise ConfigError(f"unknown reference policy {name!r}: choose one of {', '.join(REFERENCE_POLICIES)}")

@@ -12,7 +12,8 @@ import torch
 from latentdrive.bnn.checkpoint import atomic_write_text
 from latentdrive.config import ConfigError
 from latentdrive.evaluate.gif import save_episode_gif
-from latentdrive.evaluate.policies import reference_policy
+from latentdrive.evaluate.planner import PlannerConfig
+from latentdrive.evaluate.policies import SIMULATOR_POLICIES, reference_policy
 from latentdrive.evaluate.report import PolicyReport, compare, policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.models.bottleneck import PAIR_CHANNELS
@@ -20,6 +21,7 @@ from latentdrive.models.vfan import QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.policy import greedy_policy, load_policy_network
 from latentdrive.rollout import Policy, rollout
+from latentdrive.scenarios import RewardConfig
 from latentdrive.seeds import eval_reset_seed
 from latentdrive.vec import make_vec
 
@@ -30,17 +32,20 @@ class EvaluationSet:
     """The definition of an evaluation: which episodes, on which backend."""
 
     def __init__(self, scenarios: Sequence[str], episodes: int, envs: int, backend: str, seed_offset: int,
-                 observation: dict[str, Any] | None = None, reward: dict[str, Any] | None = None) -> None:
+                 observation: dict[str, Any] | None = None, reward: dict[str, Any] | None = None,
+                 planner: PlannerConfig | None = None) -> None:
         self.scenarios, self.episodes, self.envs = list(scenarios), episodes, min(envs, episodes)
         self.backend, self.seed_offset = backend, seed_offset
         self.observation = observation or {}
         #: The runs' reward weights (returns are reported under them; rates do not depend on them).
         self.reward = reward or {}
+        #: Settings of the ``plan`` reference.
+        self.planner = planner or PlannerConfig()
 
     def as_dict(self) -> dict[str, Any]:
         return {"scenarios": self.scenarios, "episodes_per_scenario": self.episodes, "envs": self.envs,
                 "backend": self.backend, "reset_seed": eval_reset_seed(self.seed_offset),
-                "seed_offset": self.seed_offset}
+                "seed_offset": self.seed_offset, "planner": self.planner.model_dump()}
 
     def env_overrides(self) -> dict[str, Any]:
         return {k: v for k, v in (("observation", self.observation), ("reward", self.reward)) if v}
@@ -60,8 +65,12 @@ def policy_makers(runs: Sequence[str], references: Sequence[str], eval_set: Eval
         if eval_set.observation and cfg.observation.model_dump() != eval_set.observation:
             raise ConfigError(f"{run}: trained on another observation config than the evaluation's")
         makers[run] = greedy_policy(net, device)
+    reward = RewardConfig(**eval_set.reward)
     for name in references:
-        makers[name] = reference_policy(name)
+        if name in SIMULATOR_POLICIES and eval_set.backend != "fast":
+            raise ConfigError(f"the {name!r} reference needs the fast backend (it branches the simulation "
+                              f"state, which the {eval_set.backend} backend cannot copy cheaply)")
+        makers[name] = reference_policy(name, planner=eval_set.planner, reward=reward)
     return makers
 
 

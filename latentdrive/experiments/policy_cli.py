@@ -45,6 +45,16 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
     return 0
 
 
+def _planner_settings(overrides: list[str]) -> Any:
+    from latentdrive.evaluate.planner import planner_config
+
+    parsed = parse_override_args(overrides)
+    unknown = sorted(k for k in parsed if not k.startswith("planner.") or k == "planner.")
+    if unknown:
+        raise ConfigError(f"--set {unknown[0]}: evaluate takes planner.KEY=VALUE settings only")
+    return planner_config({k.removeprefix("planner."): v for k, v in parsed.items()})
+
+
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -107,7 +117,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     rewards = [c["train"].get("reward") for c in configs]
     eval_set = EvaluationSet(scenarios, args.episodes, args.envs, args.backend, args.seed_offset,
                              observation=observations[0] if observations else None,
-                             reward=rewards[0] if rewards and all(r == rewards[0] for r in rewards) else None)
+                             reward=rewards[0] if rewards and all(r == rewards[0] for r in rewards) else None,
+                             planner=_planner_settings(args.overrides))
     device = resolve_device(args.device)
     total = args.episodes * len(scenarios) * (len(runs) + len(references))
     makers = policy_makers(runs, references, eval_set, device)
@@ -172,8 +183,9 @@ def add_policy_parsers(sub: Any) -> None:
                        description="Evaluate a trained run and the reference policies on the same held-out "
                        "episodes (seeds training never uses), per scenario and mixed, with 95%% intervals.")
     s.add_argument("run", nargs="?", default="", help="policy run directory (optional)")
-    s.add_argument("--policy", default="random,idle,stop,rule",
-                   help="reference policies to include, comma-separated, or 'none' (default all four)")
+    s.add_argument("--policy", default="random,idle,stop,rule,plan",
+                   help="reference policies to include, comma-separated, or 'none' (default all five; "
+                   "'plan', the lookahead planner, needs the fast backend)")
     s.add_argument("--scenarios", default="", help="comma-separated (default: the run's training scenarios, or all five)")
     s.add_argument("--episodes", type=int, default=100, help="episodes per scenario (default 100)")
     s.add_argument("--envs", type=int, default=16, help="environments per scenario; part of the evaluation set's definition (default 16)")
@@ -184,5 +196,7 @@ def add_policy_parsers(sub: Any) -> None:
                    help="a second run, or a reference policy name: paired differences on the same episodes and McNemar's exact test")
     s.add_argument("--gif", default="", help="draw one episode of the first scenario to this GIF")
     s.add_argument("--device", default="auto")
+    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="planner.KEY=VALUE",
+                   help="lookahead planner setting, repeatable (--set planner.depth=5 --set planner.rounds=1)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=_cmd_evaluate)

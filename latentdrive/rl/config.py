@@ -53,4 +53,12 @@ class PolicyTrainConfig(Config):
             raise ValueError("mode 'latent' needs a trained BNN: give bnn (train-policy --bnn RUN)")
         if self.mode == "raw" and self.bnn:
             raise ValueError("mode 'raw' takes no BNN")
+        # An AV stops earning when it completes its mission, and the learner bootstraps
+        # through the time limit: if cruising forever is worth more than arriving, the
+        # optimal policy never arrives.
+        forever = self.reward.speed / (1.0 - self.dqn.gamma) if self.dqn.gamma < 1 else float("inf")
+        if self.reward.speed > 0 and self.reward.mission <= forever:
+            raise ValueError(f"reward.mission ({self.reward.mission:g}) must exceed reward.speed / (1 - dqn.gamma) "
+                             f"({forever:g}), what cruising forever is worth; otherwise the learner avoids "
+                             "completing its mission")
         return self

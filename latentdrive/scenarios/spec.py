@@ -104,11 +104,18 @@ class RewardConfig(Config):
     r_i = collision·crashed_i (on the step it crashes)
         + speed·clip((v_i − v_lo)/(v_hi − v_lo), 0, 1)   (v_lo, v_hi: the scenario's reward_speed_range)
         + mission·arrived_i (on the step the mission completes).
+
+    An AV that completes its mission stops earning (its episode terminated), so the
+    mission must be worth more than the speed term it gives up: at discount γ cruising
+    forever is worth ``speed / (1 − γ)`` (4.0 at γ = 0.95, the DQN's default), which a
+    learner that bootstraps through the time limit would otherwise prefer to arriving.
+    The default of 5 keeps arriving the better choice (``train-policy`` refuses a reward
+    where it is not).
     """
 
     collision: float = Field(-1.0, le=0, description="Reward on the step an AV crashes.")
     speed: float = Field(0.2, ge=0, description="Weight of the normalized-speed term, per step.")
-    mission: float = Field(1.0, ge=0, description="Reward on the step an AV completes its mission.")
+    mission: float = Field(5.0, ge=0, description="Reward on the step an AV completes its mission.")
 
 
 class ScenarioSpec(Config):

@@ -129,3 +129,16 @@ def test_evaluation_offsets_are_disjoint_sets():
 
     with pytest.raises(ConfigError, match="offset"):
         eval_reset_seed(-1)
+
+
+def test_a_reward_that_pays_more_for_never_arriving_is_refused():
+    from latentdrive.config import ConfigError, validate
+    from latentdrive.rl.config import PolicyTrainConfig
+
+    # Regression: with mission 1 and speed 0.2 at γ = 0.95, cruising forever (worth 4)
+    # beat arriving, and no learned policy completed a merge.
+    with pytest.raises(ConfigError, match="mission"):
+        validate(PolicyTrainConfig, {"mode": "raw", "reward": {"mission": 1.0}})
+    ok = validate(PolicyTrainConfig, {"mode": "raw", "reward": {"mission": 1.0}, "dqn": {"gamma": 0.5}})
+    assert ok.reward.mission == 1.0
+    assert validate(PolicyTrainConfig, {"mode": "raw"}).reward.mission > 0.2 / (1 - 0.95)

@@ -110,7 +110,7 @@ def test_raster_is_cached_and_read_only():
 
 
 def test_arrival_is_flagged_on_the_goal_edge():
-    # One AV on an empty merge, accelerating: it passes x = 370 m (edge c-d + 60 m) in time.
+    # One AV on an empty merge, accelerating: it passes x = 310 m + the goal distance (edge c-d) in time.
     spec = get_spec("merge", n_hv=0, n_av=1, duration=20)
     backend = HighwayBackend(spec)
     scene = backend.reset(seed=0)
@@ -121,7 +121,7 @@ def test_arrival_is_flagged_on_the_goal_edge():
             break
     av = backend.avs[0]
     assert scene.arrived is not None and scene.arrived[scene.agents].all()
-    assert av.lane_index[1] == "d" and av.position[0] >= 310.0 + 60.0
+    assert av.lane_index[1] == "d" and av.position[0] >= 310.0 + spec.goal.longitudinal
 
 
 @pytest.mark.parametrize("name", SCENARIOS)

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from latentdrive.actions import N_ACTIONS
 from latentdrive.scenarios.spec import ScenarioSpec
 from latentdrive.scene import Kind, RoadRaster, Scene
+from latentdrive.sim.fast.branch import Branches, BranchPart, take_rows
 from latentdrive.sim.fast.kreset import PF_ROWS, PI_ROWS, load_rows
 from latentdrive.sim.fast.kstep import step_envs
 from latentdrive.sim.fast.network import Network, get_network
@@ -181,6 +182,31 @@ class FastBatch:
         if np.any(used & ((table < 0) | (table >= N_ACTIONS))):
             raise ValueError(f"actions must be integers in [0, {N_ACTIONS})")
         return table
+
+    # -- lookahead ---------------------------------------------------------------------
+    def branch(self, env_ids: Sequence[int] | NDArray[np.integer], copies: int) -> Branches:
+        """``copies`` independent copies of each environment in ``env_ids`` at its current
+        instant (branch ``k * copies + j`` copies ``env_ids[k]``), for lookahead; advancing
+        them leaves this batch unchanged."""
+        ids = np.asarray(env_ids, dtype=np.int64).reshape(-1)
+        if copies < 1 or ids.size == 0:
+            raise ValueError(f"branch needs environments and copies >= 1, got {ids.size} and {copies}")
+        if not self._ready[ids].all():
+            raise RuntimeError("reset() the environments before branching them")
+        n_av = {int(self._n_av[i]) for i in ids}
+        if len(n_av) != 1:
+            raise ValueError(f"branched environments must share their AV count, got {sorted(n_av)}")
+        out = np.arange(ids.size * copies, dtype=np.int64).reshape(ids.size, copies)
+        parts = []
+        for g, group in enumerate(self._groups):
+            mine = [k for k, i in enumerate(ids) if self._where[i][0] == g]
+            if not mine:
+                continue
+            rows = np.repeat([self._where[int(ids[k])][1] for k in mine], copies).astype(np.int64)
+            parts.append(BranchPart(group.network.table, take_rows(group.state, rows),
+                                    make_scratch(group.network.n_lanes, group.state.f.shape[2]),
+                                    out[mine].reshape(-1)))
+        return Branches(parts, ids.size * copies, n_av.pop())
 
     # -- observation -------------------------------------------------------------------
     def scene(self, i: int) -> Scene:

@@ -1,0 +1,71 @@
+"""How far each AV must drive to complete its mission: a static check of a scenario spec.
+
+For every AV spawn region, lane and destination, the route distance from the region's
+farthest-back start to the point that completes the mission, and the time that takes at
+the AVs' top target speed. A scenario whose missions cannot be completed in time at top
+speed measures nothing with its failure rate, so the presets keep that time within ~70%
+of the duration (tested), which leaves time for traffic, lane changes and acceleration.
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import NamedTuple
+
+from latentdrive.scenarios.spec import ScenarioSpec
+from latentdrive.sim.fast.network import LENGTH, Network, get_network
+
+__all__ = ["MissionRoute", "mission_routes"]
+
+
+class MissionRoute(NamedTuple):
+    """One way an AV can start and what its mission then asks."""
+
+    region: int  # index into spec.av_spawn
+    lane: int  # lane id on the region's edge
+    goal: str  # the node the route must reach
+    distance: float  # metres from the farthest-back start to mission completion
+    seconds: float  # that distance at the top target speed
+
+    def share(self, duration: float) -> float:
+        """``seconds`` as a fraction of the episode ``duration``."""
+        return self.seconds / duration
+
+
+def _edge_length(net: Network, edge: tuple[str, str], lane: int | None = None) -> float:
+    e = net.edge(edge)
+    first, count = int(net.table.edges[2, e]), int(net.table.edges[3, e])
+    lanes = range(first, first + count) if lane is None else [first + min(lane, count - 1)]
+    # Lanes of one edge differ in length on curves: take the longest, so the check errs
+    # on the side of "too far".
+    return max(float(net.table.geo[LENGTH, k]) for k in lanes)
+
+
+def mission_routes(spec: ScenarioSpec) -> list[MissionRoute]:
+    """Every (spawn region, lane, goal) route of ``spec``'s AVs, with its worst-case length.
+
+    An AV with destinations must reach one of them; one without follows the road to a goal
+    node (``spec.goal.nodes``). The mission completes ``spec.goal.longitudinal`` metres
+    along the last edge of the route (the edge that ends at the goal node).
+
+    Raises:
+        ValueError: a goal the spawn region cannot reach at all.
+    """
+    net = get_network(spec.layout, spec.lanes_count)
+    top = max(spec.av_target_speeds)
+    out = []
+    for r, region in enumerate(spec.av_spawn):
+        start = region.longitudinal.mean - region.longitudinal.clip
+        goals = region.destinations or spec.goal.nodes
+        for lane, goal in itertools.product(region.lanes, goals):
+            remaining = _edge_length(net, region.edge, lane) - start
+            if region.edge[1] == goal:
+                dist = spec.goal.longitudinal - start
+            else:
+                path = net.paths.get((region.edge[1], goal))
+                if not path:
+                    raise ValueError(f"{spec.name}: goal {goal!r} is unreachable from spawn edge {region.edge}")
+                edges = list(itertools.pairwise(path))
+                dist = remaining + sum(_edge_length(net, e) for e in edges[:-1]) + spec.goal.longitudinal
+            out.append(MissionRoute(r, lane, goal, dist, dist / top))
+    return out

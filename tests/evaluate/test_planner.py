@@ -1,0 +1,69 @@
+"""The lookahead planner: its candidates, determinism, competence and refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from latentdrive.actions import ACTION_NAMES
+from latentdrive.config import ConfigError
+from latentdrive.evaluate.planner import PlannerConfig, candidate_sequences, planner_policy
+from latentdrive.evaluate.policies import reference_policy
+from latentdrive.evaluate.run import evaluate_policy
+from latentdrive.rollout import rollout
+from latentdrive.vec import make_vec
+
+IDLE, LEFT, SLOWER = (ACTION_NAMES.index(a) for a in ("Idle", "Left", "Decelerate"))
+FAST = PlannerConfig(depth=4, tail=1)
+
+
+def test_candidates_hold_a_first_action_then_a_second() -> None:
+    seq = candidate_sequences(depth=4, switch=1)
+    assert seq.shape == (25, 4)
+    np.testing.assert_array_equal(seq[0], [IDLE] * 4)  # ties go to Idle
+    assert len({tuple(s) for s in seq}) == 25
+    assert [LEFT, SLOWER, SLOWER, SLOWER] in seq.tolist()
+    assert all(len(set(s[1:])) == 1 for s in seq.tolist())
+    two = candidate_sequences(depth=4, switch=2)
+    assert all(s[0] == s[1] and len(set(s[2:])) == 1 for s in two.tolist())
+    # When the switch is at or past the horizon only constant sequences remain.
+    np.testing.assert_array_equal(candidate_sequences(depth=3, switch=3)[:, 0], [IDLE, 0, 2, 3, 4])
+
+
+def test_same_seed_same_decisions() -> None:
+    def actions() -> list[np.ndarray]:
+        vec = make_vec("merge", 2)
+        out = []
+        for k, rec in enumerate(rollout(vec, planner_policy(FAST), seed=123)):
+            out.append(rec.actions)
+            if k == 5:
+                return out
+        raise AssertionError
+
+    for a, b in zip(actions(), actions(), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
+def test_the_planner_completes_merges_the_rule_driver_crashes_in() -> None:
+    plan = evaluate_policy(reference_policy("plan", planner=FAST), ["merge"], 8, envs=8)
+    rule = evaluate_policy(reference_policy("rule"), ["merge"], 8, envs=8)
+    assert sorted(o.seed for o in plan) == sorted(o.seed for o in rule)  # the same episodes
+    plan_fail = sum(not (o.agent_arrived.all() and not o.agent_crashed.any()) for o in plan)
+    rule_fail = sum(not (o.agent_arrived.all() and not o.agent_crashed.any()) for o in rule)
+    assert plan_fail <= 2
+    assert rule_fail - plan_fail >= 4
+
+
+def test_the_planner_refuses_a_backend_it_cannot_branch() -> None:
+    vec = make_vec("merge", 1, backend="highway")
+    with pytest.raises(ConfigError, match="fast backend"):
+        next(rollout(vec, planner_policy(FAST), seed=0))
+
+
+@pytest.mark.parametrize("bad", [{"depth": 0}, {"rounds": 0}, {"crash_penalty": 1.0}, {"discount": 0.0},
+                                 {"horizon": 3}])
+def test_bad_planner_settings_are_refused(bad: dict[str, float]) -> None:
+    from latentdrive.evaluate.planner import planner_config
+
+    with pytest.raises(ConfigError, match="planner"):
+        planner_config(bad)

@@ -1,0 +1,70 @@
+"""Branches copy an environment's state exactly and leave the batch alone."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from latentdrive.scenarios import SCENARIOS, get_spec
+from latentdrive.sim.fast import FastBatch
+from latentdrive.sim.fast.state import ARRIVED, CRASHED
+
+
+def _idle_done(batch: FastBatch, actions: np.ndarray) -> np.ndarray:
+    # The env drives crashed and arrived AVs Idle; branches do the same by themselves.
+    st = batch._groups[0].state
+    n = actions.shape[1]
+    return np.where(st.flag[CRASHED, :, :n] | st.flag[ARRIVED, :, :n], 1, actions)
+
+
+@pytest.mark.parametrize("name", SCENARIOS)
+def test_branches_follow_the_environment_they_copy_exactly(name: str) -> None:
+    spec = get_spec(name)
+    batch = FastBatch([spec] * 3)
+    batch.reset([11, 12, 13])
+    rng = np.random.default_rng(0)
+    for _ in range(2):
+        batch.advance(_idle_done(batch, rng.integers(0, 5, (3, spec.n_av))))
+    before = [a.copy() for a in batch._groups[0].state]
+    branches = batch.branch([2, 0], copies=2)
+    plan = [rng.integers(0, 5, (3, spec.n_av)) for _ in range(4)]
+    for acts in plan:  # copies of env 2 get env 2's actions, copies of env 0 env 0's
+        branches.advance(np.stack([acts[2], acts[2], acts[0], acts[0]]))
+    # Branching and advancing branches changed nothing in the batch.
+    for a, b in zip(batch._groups[0].state, before, strict=True):
+        np.testing.assert_array_equal(a, b)
+    for acts in plan:
+        batch.advance(_idle_done(batch, acts))
+    speed, crashed, arrived = branches.agents()
+    for k, env in enumerate([2, 2, 0, 0]):
+        scene = batch.scene(env)
+        np.testing.assert_array_equal(speed[k], scene.speed[: spec.n_av])
+        np.testing.assert_array_equal(crashed[k], scene.crashed[: spec.n_av])
+        assert scene.arrived is not None
+        np.testing.assert_array_equal(arrived[k], scene.arrived[: spec.n_av])
+    np.testing.assert_array_equal(branches.time(), [batch.scene(e).time for e in (2, 2, 0, 0)])
+
+
+def test_branches_of_a_mixed_batch_keep_their_order() -> None:
+    specs = [get_spec("merge"), get_spec("highway"), get_spec("merge")]
+    batch = FastBatch(specs)
+    batch.reset([1, 2, 3])
+    branches = batch.branch([1, 0], copies=1)
+    speed, _, _ = branches.agents()
+    np.testing.assert_array_equal(speed[0], batch.scene(1).speed[:2])
+    np.testing.assert_array_equal(speed[1], batch.scene(0).speed[:2])
+
+
+def test_bad_branch_requests_are_refused() -> None:
+    batch = FastBatch([get_spec("merge")])
+    with pytest.raises(RuntimeError, match="reset"):
+        batch.branch([0], 2)
+    batch.reset([0])
+    with pytest.raises(ValueError, match="copies"):
+        batch.branch([0], 0)
+    with pytest.raises(ValueError, match="actions must be"):
+        batch.branch([0], 2).advance(np.zeros((3, 2), dtype=np.int64))
+    mixed = FastBatch([get_spec("merge"), get_spec("merge", n_av=3)])
+    mixed.reset([0, 1])
+    with pytest.raises(ValueError, match="AV count"):
+        mixed.branch([0, 1], 1)
