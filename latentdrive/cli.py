@@ -21,15 +21,21 @@ __all__ = ["main"]
 
 def _cmd_scenarios(args: argparse.Namespace) -> int:
     from latentdrive.scenarios import SCENARIOS, get_spec
+    from latentdrive.sim.reach import mission_routes
 
-    print(f"{'scenario':<13}{'layout':<13}{'AVs':>4}{'HVs':>5}{'duration s':>11}{'sim/policy Hz':>14}  {'AV target speeds m/s':<22}mission")
+    print(f"{'scenario':<13}{'layout':<13}{'AVs':>4}{'HVs':>5}{'duration s':>11}{'sim/policy Hz':>14}  "
+          f"{'AV target speeds m/s':<22}{'farthest mission':>17}  mission")
     for name in SCENARIOS:
         s = get_spec(name)
         goal = f"reach {'own destination' if s.av_spawn[0].destinations else '/'.join(s.goal.nodes)}"
         goal += f" (+{s.goal.longitudinal:g} m)"
         speeds = ", ".join(f"{v:g}" for v in s.av_target_speeds)
+        far = max(mission_routes(s), key=lambda r: r.distance)
+        reach = f"{far.distance:.0f} m, {far.share(s.duration):.0%}"
         print(f"{name:<13}{s.layout:<13}{s.n_av:>4}{s.n_hv:>5}{s.duration:>11g}"
-              f"{f'{s.simulation_frequency}/{s.policy_frequency}':>14}  {speeds:<22}{goal}")
+              f"{f'{s.simulation_frequency}/{s.policy_frequency}':>14}  {speeds:<22}{reach:>17}  {goal}")
+    print("farthest mission: the longest route from a spawn region to mission completion, and the share "
+          "of the duration it takes at the top target speed")
     if args.verbose:
         for name in SCENARIOS:
             print(f"\n# {name}\n" + json.dumps(get_spec(name).model_dump(mode="json"), indent=1))

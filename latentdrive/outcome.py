@@ -33,6 +33,9 @@ class EpisodeOutcome(NamedTuple):
     agent_return: NDArray[np.float64]
     #: Mean AV speed over the agent-steps in which an AV was acting, m/s.
     mean_speed: float
+    #: Human drivers crashed among themselves (or into the road's obstacles) while no AV
+    #: had crashed. A wreck can block a lane for good: a failure no AV could avoid.
+    traffic_crashed: bool = False
 
     @property
     def crashed(self) -> bool:

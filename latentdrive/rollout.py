@@ -21,7 +21,7 @@ from numpy.typing import NDArray
 
 from latentdrive.env import AgentStep
 from latentdrive.outcome import EpisodeOutcome
-from latentdrive.scene import Scene
+from latentdrive.scene import Kind, Scene
 from latentdrive.sim import BatchBackend
 from latentdrive.vec import DrivingVecEnv
 
@@ -90,16 +90,20 @@ class _Tally:
         self.speed_n = np.zeros(num_envs, dtype=np.int64)
         self.crashed = np.zeros((num_envs, n_av), dtype=bool)
         self.arrived = np.zeros((num_envs, n_av), dtype=bool)
+        self.traffic_crashed = np.zeros(num_envs, dtype=bool)
         self.episode_index = np.zeros(num_envs, dtype=np.int64)
 
     def add(self, agents: AgentStep, speeds: NDArray[np.float64], crashed: NDArray[np.bool_],
-            arrived: NDArray[np.bool_]) -> None:
+            arrived: NDArray[np.bool_], hv_crashed: NDArray[np.bool_]) -> None:
         self.steps += 1
         self.returns += agents.reward
         self.speed_sum += np.where(agents.acting, speeds, 0.0).sum(axis=1)
         self.speed_n += agents.acting.sum(axis=1)
         self.crashed |= crashed
         self.arrived |= arrived
+        # An HV that crashed on the step an AV did most likely hit that AV: not a wreck
+        # among the traffic.
+        self.traffic_crashed |= hv_crashed & ~crashed.any(axis=1)
 
     def close(self, e: int, scenario: str, seed: int) -> EpisodeOutcome:
         out = EpisodeOutcome(
@@ -107,6 +111,7 @@ class _Tally:
             steps=int(self.steps[e]), agent_crashed=self.crashed[e].copy(), agent_arrived=self.arrived[e].copy(),
             agent_return=self.returns[e].copy(),
             mean_speed=float(self.speed_sum[e] / max(int(self.speed_n[e]), 1)),
+            traffic_crashed=bool(self.traffic_crashed[e]),
         )
         self.steps[e] = 0
         self.returns[e] = 0.0
@@ -114,12 +119,17 @@ class _Tally:
         self.speed_n[e] = 0
         self.crashed[e] = False
         self.arrived[e] = False
+        self.traffic_crashed[e] = False
         self.episode_index[e] += 1
         return out
 
 
 def _agent_values(scenes: NDArray[np.object_], field: str) -> NDArray[np.generic]:
     return np.stack([getattr(s, field)[s.agents] for s in scenes])
+
+
+def _hv_crashed(scenes: NDArray[np.object_]) -> NDArray[np.bool_]:
+    return np.array([bool(s.crashed[s.kind == Kind.HV].any()) for s in scenes])
 
 
 def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[StepRecord]:
@@ -146,7 +156,7 @@ def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[St
         last_scenes = np.where(ended, fin["scene"], info["scene"]) if ended.any() else info["scene"]
         tally.add(agents, _agent_values(last_scenes, "speed").astype(np.float64),
                   _agent_values(last_scenes, "crashed").astype(bool),
-                  _agent_values(last_scenes, "arrived").astype(bool))
+                  _agent_values(last_scenes, "arrived").astype(bool), _hv_crashed(last_scenes))
         next_obs = obs_after
         clean_after = info.get("clean_observation")
         clean_next = clean_after

@@ -43,7 +43,8 @@ class ScenarioSummary:
     Episode rates: ``failure_rate = crash_rate + timeout_rate`` and ``success_rate = 1 -
     failure_rate`` (see :class:`~latentdrive.outcome.EpisodeOutcome`). ``agent_crash_rate``
     and ``agent_arrival_rate`` count AV-episodes; AVs of one episode share traffic, so
-    their intervals are too narrow. ``mean_speed`` (m/s), ``mean_return`` (each episode's
+    their intervals are too narrow. ``traffic_crash_rate``: episodes in which human
+    drivers crashed among themselves (a wreck can block a mission). ``mean_speed`` (m/s), ``mean_return`` (each episode's
     per-AV return averaged over its AVs) and ``mean_steps`` are means over episodes;
     episodes whose value is NaN (e.g. no AV ever acted) are left out of that mean.
     Pooled ("mixed") numbers weight scenarios by their episode counts.
@@ -56,6 +57,7 @@ class ScenarioSummary:
     timeout_rate: RateCI
     agent_crash_rate: RateCI
     agent_arrival_rate: RateCI
+    traffic_crash_rate: RateCI
     mean_speed: MeanCI
     mean_return: MeanCI
     mean_steps: MeanCI
@@ -93,6 +95,7 @@ def summarize(outcomes: Sequence[EpisodeOutcome]) -> ScenarioSummary:
         timeout_rate=count(lambda o: o.timed_out),
         agent_crash_rate=rate_ci(crashed_agents, agents),
         agent_arrival_rate=rate_ci(arrived_agents, agents),
+        traffic_crash_rate=count(lambda o: o.traffic_crashed),
         mean_speed=mean_ci(_finite(float(o.mean_speed) for o in outcomes)),
         mean_return=mean_ci(_finite(returns)),
         mean_steps=mean_ci([float(o.steps) for o in outcomes]),
@@ -152,7 +155,7 @@ def _render(header: Sequence[str], rows: Sequence[Sequence[str]], left: int) -> 
 
 _TABLE_HEADER = (
     "policy", "scenario", "episodes", "failure % [95% CI]", "crash % [95% CI]",
-    "success %", "AV arrival %", "speed m/s", "return", "steps",
+    "success %", "AV arrival %", "HV wreck %", "speed m/s", "return", "steps",
 )
 
 
@@ -168,7 +171,7 @@ def format_table(reports: Mapping[str, PolicyReport]) -> str:
             rows.append([
                 policy, scenario, str(s.episodes), _pct(s.failure_rate), _pct(s.crash_rate),
                 _pct(s.success_rate, ci=False), _pct(s.agent_arrival_rate, ci=False),
-                _num(s.mean_speed, 2), _num(s.mean_return, 2), _num(s.mean_steps, 1),
+                _pct(s.traffic_crash_rate, ci=False), _num(s.mean_speed, 2), _num(s.mean_return, 2), _num(s.mean_steps, 1),
             ])
     return _render(_TABLE_HEADER, rows, left=2)
 
