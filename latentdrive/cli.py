@@ -23,10 +23,12 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
     from latentdrive.scenarios import SCENARIOS, get_spec
     from latentdrive.sim.reach import mission_routes
 
+    names = args.specs or list(SCENARIOS)
+    specs = [get_spec(n) for n in names]  # unknown names fail before any output
     print(f"{'scenario':<13}{'layout':<13}{'AVs':>4}{'HVs':>5}{'duration s':>11}{'sim/policy Hz':>14}  "
           f"{'AV target speeds m/s':<22}{'farthest mission':>17}  mission")
-    for name in SCENARIOS:
-        s = get_spec(name)
+    for s in specs:
+        name = s.name
         goal = f"reach {'own destination' if s.av_spawn[0].destinations else '/'.join(s.goal.nodes)}"
         goal += f" (+{s.goal.longitudinal:g} m)"
         speeds = ", ".join(f"{v:g}" for v in s.av_target_speeds)
@@ -37,8 +39,8 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
     print("farthest mission: the longest route from a spawn region to mission completion, and the share "
           "of the duration it takes at the top target speed")
     if args.verbose:
-        for name in SCENARIOS:
-            print(f"\n# {name}\n" + json.dumps(get_spec(name).model_dump(mode="json"), indent=1))
+        for s in specs:
+            print(f"\n# {s.name}\n" + json.dumps(s.model_dump(mode="json"), indent=1))
     return 0
 
 
@@ -222,6 +224,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("scenarios", help="list the scenarios and their settings")
+    s.add_argument("specs", nargs="*", help="scenario names or spec .yaml files (default: the five presets)")
     s.add_argument("-v", "--verbose", action="store_true", help="print every spec in full")
     s.set_defaults(func=_cmd_scenarios)
 

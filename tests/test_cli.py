@@ -77,3 +77,9 @@ def test_validate_backend_small(tmp_path, capsys):
     assert {r["statistic"] for r in rows} == {"crash_rate", "length", "speed", "lane_change_rate"}
     assert code == (0 if all(r["ok"] for r in rows) else 1)
     assert "intersection" in capsys.readouterr().out
+
+
+def test_scenarios_prints_how_far_each_mission_is(capsys):
+    assert main(["scenarios", "merge"]) == 0
+    out = capsys.readouterr().out
+    assert "300 m, 67%" in out and "roundabout" not in out
