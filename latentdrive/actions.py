@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-__all__ = ["ACTION_NAMES", "META_ACTIONS", "N_ACTIONS"]
+__all__ = ["ACTION_NAMES", "FASTER", "IDLE", "LEFT", "META_ACTIONS", "N_ACTIONS", "RIGHT", "SLOWER"]
 
 #: Human-readable names, in action-index order.
 ACTION_NAMES: tuple[str, ...] = ("Left", "Idle", "Right", "Accelerate", "Decelerate")
@@ -10,3 +10,6 @@ ACTION_NAMES: tuple[str, ...] = ("Left", "Idle", "Right", "Accelerate", "Deceler
 #: there is no lane keeps the current lane (a no-op), so all five exist in every layout.
 META_ACTIONS: tuple[str, ...] = ("LANE_LEFT", "IDLE", "LANE_RIGHT", "FASTER", "SLOWER")
 N_ACTIONS = len(ACTION_NAMES)
+#: Action indices by name. Idle is what an AV that has finished is driven with.
+LEFT, IDLE, RIGHT, FASTER, SLOWER = range(N_ACTIONS)
+assert ACTION_NAMES[IDLE] == "Idle" and ACTION_NAMES[SLOWER] == "Decelerate"

@@ -85,6 +85,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         get_spec(name)  # unknown names fail before any work
     if args.steps < 1:
         raise LatentDriveError("--steps must be at least 1")
+    if args.train and args.plan:
+        raise LatentDriveError("--plan and --train measure different things: give one")
     if args.train:
         from latentdrive.rl.bench import bench_training, format_train_bench
 
@@ -99,11 +101,11 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         return 0
     if args.plan:
         from latentdrive.evaluate.plan_bench import bench_planner, format_plan_bench
-        from latentdrive.evaluate.planner import planner_config
+        from latentdrive.evaluate.planner import planner_config_from_args
 
         if args.batch_size < 1:
             raise LatentDriveError(f"--batch-size must be at least 1, got {args.batch_size}")
-        pcfg = planner_config(parse_override_args(args.overrides))
+        pcfg = planner_config_from_args(args.overrides)
         _say(f"benchmarking the planner on {', '.join(names)} ...")
         prows = bench_planner(names, envs=args.batch_size, decisions=args.steps, cfg=pcfg, progress=_say)
         print(format_plan_bench(prows, pcfg))
@@ -251,7 +253,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "(--steps: agent-transitions measured; --batch-size: envs; --set: train-policy overrides)")
     s.add_argument("--plan", action="store_true",
                    help="benchmark the lookahead planner instead: ms per decision vs one simulated step "
-                        "(--steps: decisions; --batch-size: envs; --set: planner settings, depth=5)")
+                        "(--steps: decisions; --batch-size: envs; --set planner.KEY=VALUE)")
     s.add_argument("--modes", default="", help="with --train: comma-separated modes (default raw,latent,end-to-end)")
     s.add_argument("--bnn", default="", help="with --train: a BNN run for mode latent (default: an untrained encoder, same cost)")
     _add_set(s, "observation override, repeatable (--set height=64 --set resolution=1.0); with --train, train-policy overrides")

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
-from latentdrive.actions import N_ACTIONS
+from latentdrive.actions import IDLE, N_ACTIONS
 from latentdrive.config import Config, ConfigError, ObservationConfig, merge_overrides, validate
 from latentdrive.observe import FrameStack, render_frame
 from latentdrive.reward import agent_rewards, episode_end
@@ -37,8 +37,6 @@ from latentdrive.sim import make_backend
 __all__ = ["AgentStep", "DrivingEnv", "EnvConfig", "Episode", "EpisodeEnded", "make_env", "make_env_config",
            "resolve_config"]
 
-#: The action an inactive (crashed or arrived) AV is driven with.
-_IDLE = 1
 
 
 class EpisodeEnded(RuntimeError):
@@ -135,7 +133,7 @@ class Episode:
         if actions.shape != (self.spec.n_av,) or actions.min() < 0 or actions.max() >= N_ACTIONS:
             raise ValueError(f"action must be {self.spec.n_av} integers in [0, {N_ACTIONS}), got {action!r}")
         # What an AV that has finished is told to do must not change the simulation.
-        return np.where(self.active, actions, _IDLE)
+        return np.where(self.active, actions, IDLE)
 
     def advance(self, scene: Scene) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Account for one policy step that led to ``scene``."""

@@ -21,7 +21,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from latentdrive.actions import ACTION_NAMES, N_ACTIONS
+from latentdrive.actions import FASTER, IDLE, LEFT, N_ACTIONS, RIGHT, SLOWER
 from latentdrive.scene import Scene
 
 __all__ = [
@@ -37,8 +37,6 @@ IntArray = NDArray[np.int64]
 Policy = Callable[[Scene, np.random.Generator], IntArray]
 Behaviour = Literal["mixed", "random", "rule"]
 BEHAVIOURS: tuple[str, ...] = ("mixed", "random", "rule")
-
-LEFT, IDLE, RIGHT, FASTER, SLOWER = (ACTION_NAMES.index(n) for n in ("Left", "Idle", "Right", "Accelerate", "Decelerate"))
 
 
 def random_policy(scene: Scene, rng: np.random.Generator) -> IntArray:

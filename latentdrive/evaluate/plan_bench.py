@@ -1,4 +1,4 @@
-"""What a lookahead planner decision costs, against one simulated step, measured in one run.
+"""The cost of a lookahead planner decision against one simulated step, in one run.
 
 For each scenario, ``envs`` environments are driven by the planner for ``decisions``
 vector steps (after one untimed step that loads the compiled kernels); the planner's time per environment-decision and the simulator's own time

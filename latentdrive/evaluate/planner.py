@@ -15,8 +15,11 @@ At each decision, for every environment at once:
    simulation (:meth:`FastBatch.branch <latentdrive.sim.fast.batch.FastBatch.branch>`);
 3. a candidate's score is the team's discounted return under the env's own reward, with
    ``crash_penalty`` added on the step any AV crashes. Nothing counts after the episode
-   would have ended (a crash, every AV arrived, or the time limit). The AV adopts the
-   best candidate (the lowest index on ties, so the planner is deterministic);
+   would have ended (a crash, every AV arrived, or the time limit). After the horizon
+   every AV brakes for ``tail`` more steps, and a crash there costs the penalty too: a
+   plan should not end where a crash can no longer be avoided. (A braking AV can also
+   be rear-ended by a close follower, so the tail errs on the side of caution.) The AV adopts the best
+   candidate (the lowest index on ties, so the planner is deterministic);
 4. every AV applies the first action of its plan.
 
 The other vehicles follow the simulator's own driver models. Same state, same decision:
@@ -31,16 +34,16 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
-from latentdrive.actions import ACTION_NAMES, N_ACTIONS
-from latentdrive.config import Config, ConfigError, validate
+from latentdrive.actions import IDLE, N_ACTIONS, SLOWER
+from latentdrive.config import Config, ConfigError, parse_override_args, validate
 from latentdrive.reward import agent_rewards
 from latentdrive.rollout import Policy, PolicyInput
 from latentdrive.scenarios import RewardConfig
 from latentdrive.sim.fast import FastBatch
 
-__all__ = ["PlannerConfig", "candidate_sequences", "plan_actions", "planner_config", "planner_policy"]
+__all__ = ["PlannerConfig", "candidate_sequences", "plan_actions", "planner_config", "planner_config_from_args",
+           "planner_policy"]
 
-_IDLE, _SLOWER = ACTION_NAMES.index("Idle"), ACTION_NAMES.index("Decelerate")
 
 
 class PlannerConfig(Config):
@@ -57,7 +60,7 @@ class PlannerConfig(Config):
 def candidate_sequences(depth: int, switch: int) -> NDArray[np.int64]:
     """``(C, depth)`` action sequences: ``a1`` for ``switch`` steps, then ``a2``; C = 25
     (or 5 when ``switch >= depth``, where ``a2`` never plays). Idle-only comes first."""
-    order = [_IDLE] + [a for a in range(N_ACTIONS) if a != _IDLE]
+    order = [IDLE] + [a for a in range(N_ACTIONS) if a != IDLE]
     firsts = np.asarray(order, dtype=np.int64)
     if switch >= depth:
         return np.repeat(firsts[:, None], depth, axis=1)
@@ -98,7 +101,7 @@ def _scores(sim: FastBatch, env_ids: NDArray[np.int64], plans: NDArray[np.int64]
         crashed, arrived = now_crashed, now_arrived
     # A plan can end where no action avoids a crash a moment later. Braking after the
     # horizon exposes such ends: a crash there costs the penalty, nothing else counts.
-    brake = np.full((n_env * n_cand, n_av), _SLOWER, dtype=np.int64)
+    brake = np.full((n_env * n_cand, n_av), SLOWER, dtype=np.int64)
     for t in range(depth, depth + cfg.tail):
         alive &= t < left
         if not alive.any():
@@ -117,7 +120,7 @@ def plan_actions(sim: FastBatch, env_ids: NDArray[np.int64], steps_left: NDArray
     """The planner's actions ``(E, n_av)`` for environments ``env_ids`` of ``sim``."""
     cands = candidate_sequences(cfg.depth, cfg.switch)
     n_env, n_cand = env_ids.size, cands.shape[0]
-    plans = np.full((n_env, n_av, cfg.depth), _IDLE, dtype=np.int64)
+    plans = np.full((n_env, n_av, cfg.depth), IDLE, dtype=np.int64)
     for _ in range(cfg.rounds):
         for agent in range(n_av):
             joint = np.repeat(plans[:, None], n_cand, axis=1)  # (E, C, A, D)
@@ -144,6 +147,15 @@ def planner_policy(cfg: PlannerConfig | None = None, reward: RewardConfig | None
         return plan_actions(sim, env_ids, steps_left, n_av, config, rew)
 
     return policy
+
+
+def planner_config_from_args(items: list[str]) -> PlannerConfig:
+    """A :class:`PlannerConfig` from CLI ``planner.KEY=VALUE`` items (ConfigError otherwise)."""
+    parsed = parse_override_args(items)
+    unknown = sorted(k for k in parsed if not k.startswith("planner.") or k == "planner.")
+    if unknown:
+        raise ConfigError(f"--set {unknown[0]}: expected planner.KEY=VALUE (planner.depth=5)")
+    return planner_config({k.removeprefix("planner."): v for k, v in parsed.items()})
 
 
 def planner_config(overrides: dict[str, Any]) -> PlannerConfig:

@@ -18,7 +18,7 @@ from collections.abc import Callable
 import numpy as np
 from numpy.typing import NDArray
 
-from latentdrive.actions import ACTION_NAMES, N_ACTIONS
+from latentdrive.actions import IDLE, N_ACTIONS, SLOWER
 from latentdrive.config import ConfigError
 from latentdrive.data.policies import rule_policy
 from latentdrive.evaluate.planner import PlannerConfig, planner_policy
@@ -30,7 +30,6 @@ __all__ = ["REFERENCE_POLICIES", "SIMULATOR_POLICIES", "reference_policy"]
 REFERENCE_POLICIES: tuple[str, ...] = ("random", "idle", "stop", "rule", "plan")
 #: The references that need the fast backend (they branch its state).
 SIMULATOR_POLICIES: tuple[str, ...] = ("plan",)
-_IDLE, _SLOWER = ACTION_NAMES.index("Idle"), ACTION_NAMES.index("Decelerate")
 
 
 def _constant(action: int) -> Policy:
@@ -73,8 +72,8 @@ def reference_policy(name: str, seed: int = 0, *, planner: PlannerConfig | None 
     """
     makers: dict[str, Callable[[], Policy]] = {
         "random": lambda: _random(seed),
-        "idle": lambda: _constant(_IDLE),
-        "stop": lambda: _constant(_SLOWER),
+        "idle": lambda: _constant(IDLE),
+        "stop": lambda: _constant(SLOWER),
         "rule": lambda: _rule(seed),
         "plan": lambda: planner_policy(planner, reward),
     }

@@ -39,13 +39,14 @@ class EvaluationSet:
         self.observation = observation or {}
         #: The runs' reward weights (returns are reported under them; rates do not depend on them).
         self.reward = reward or {}
-        #: Settings of the ``plan`` reference.
-        self.planner = planner or PlannerConfig()
+        #: Settings of the ``plan`` reference (None when it is not evaluated).
+        self.planner = planner
 
     def as_dict(self) -> dict[str, Any]:
         return {"scenarios": self.scenarios, "episodes_per_scenario": self.episodes, "envs": self.envs,
                 "backend": self.backend, "reset_seed": eval_reset_seed(self.seed_offset),
-                "seed_offset": self.seed_offset, "planner": self.planner.model_dump()}
+                "seed_offset": self.seed_offset,
+                **({"planner": self.planner.model_dump()} if self.planner is not None else {})}
 
     def env_overrides(self) -> dict[str, Any]:
         return {k: v for k, v in (("observation", self.observation), ("reward", self.reward)) if v}

@@ -45,20 +45,14 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
     return 0
 
 
-def _planner_settings(overrides: list[str]) -> Any:
-    from latentdrive.evaluate.planner import planner_config
-
-    parsed = parse_override_args(overrides)
-    unknown = sorted(k for k in parsed if not k.startswith("planner.") or k == "planner.")
-    if unknown:
-        raise ConfigError(f"--set {unknown[0]}: evaluate takes planner.KEY=VALUE settings only")
-    return planner_config({k.removeprefix("planner."): v for k, v in parsed.items()})
-
-
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from latentdrive.evaluate.policies import REFERENCE_POLICIES, reference_policy
+    from latentdrive.evaluate.planner import planner_config_from_args
+    from latentdrive.evaluate.policies import (
+        REFERENCE_POLICIES,
+        SIMULATOR_POLICIES,
+    )
     from latentdrive.evaluate.report import format_compare, format_table
     from latentdrive.experiments.policy import (
         EvaluationSet,
@@ -68,13 +62,21 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         save_policy_gif,
         write_json,
     )
-    from latentdrive.rl.policy import greedy_policy, load_policy_network, read_run_config
+    from latentdrive.rl.policy import (
+        changed_scenarios,
+        greedy_policy,
+        load_policy_network,
+        read_run_config,
+    )
     from latentdrive.runtime import resolve_device
     from latentdrive.scenarios import SCENARIOS, get_spec
     from latentdrive.seeds import MAX_ENVS, eval_reset_seed
 
     runs = [args.run] if args.run else []
-    references = [] if args.policy in ("", "none") else _split(args.policy)
+    if args.policy is None:  # every reference the backend can run
+        references = [p for p in REFERENCE_POLICIES if args.backend == "fast" or p not in SIMULATOR_POLICIES]
+    else:
+        references = [] if args.policy in ("", "none") else _split(args.policy)
     if args.compare:
         if not runs:
             raise ConfigError("--compare needs a RUN to compare with")
@@ -85,6 +87,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         else:
             runs.append(args.compare)
     configs = [read_run_config(r) for r in runs]  # fail before any work
+    for run, c in zip(runs, configs, strict=True):
+        moved = changed_scenarios(c)
+        if moved:
+            _say(f"warning: {run} was trained on {', '.join(moved)} as specified then; the spec has changed "
+                 "since, and the evaluation uses today's")
     for name in references:
         if name not in REFERENCE_POLICIES:
             raise ConfigError(f"unknown reference policy {name!r}: choose from {', '.join(REFERENCE_POLICIES)}")
@@ -118,7 +125,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     eval_set = EvaluationSet(scenarios, args.episodes, args.envs, args.backend, args.seed_offset,
                              observation=observations[0] if observations else None,
                              reward=rewards[0] if rewards and all(r == rewards[0] for r in rewards) else None,
-                             planner=_planner_settings(args.overrides))
+                             planner=planner_config_from_args(args.overrides) if "plan" in references else None)
+    if args.overrides and "plan" not in references:
+        raise ConfigError("--set planner.* given, but the planner ('plan') is not evaluated")
     device = resolve_device(args.device)
     total = args.episodes * len(scenarios) * (len(runs) + len(references))
     makers = policy_makers(runs, references, eval_set, device)
@@ -152,7 +161,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             path = save_policy_gif(args.gif, net, greedy_policy(net, device), scenarios[0], eval_set,
                                    f"{runs[0]} ({net.mode}) on {scenarios[0]}", device)
         else:
-            path = save_policy_gif(args.gif, None, reference_policy(references[0]), scenarios[0], eval_set,
+            path = save_policy_gif(args.gif, None, makers[references[0]], scenarios[0], eval_set,
                                    f"{references[0]} on {scenarios[0]}", device)
         print(f"wrote {path}")
     return 0
@@ -183,9 +192,9 @@ def add_policy_parsers(sub: Any) -> None:
                        description="Evaluate a trained run and the reference policies on the same held-out "
                        "episodes (seeds training never uses), per scenario and mixed, with 95%% intervals.")
     s.add_argument("run", nargs="?", default="", help="policy run directory (optional)")
-    s.add_argument("--policy", default="random,idle,stop,rule,plan",
-                   help="reference policies to include, comma-separated, or 'none' (default all five; "
-                   "'plan', the lookahead planner, needs the fast backend)")
+    s.add_argument("--policy", default=None,
+                   help="reference policies to include, comma-separated, or 'none' (default: random, idle, stop, "
+                   "rule and, on the fast backend, plan, the lookahead planner)")
     s.add_argument("--scenarios", default="", help="comma-separated (default: the run's training scenarios, or all five)")
     s.add_argument("--episodes", type=int, default=100, help="episodes per scenario (default 100)")
     s.add_argument("--envs", type=int, default=16, help="environments per scenario; part of the evaluation set's definition (default 16)")

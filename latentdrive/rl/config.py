@@ -6,13 +6,13 @@ from typing import Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from latentdrive.config import Config, ObservationConfig
+from latentdrive.config import Config, ConfigError, ObservationConfig
 from latentdrive.models.vfan import MODES, Mode, VFANConfig
 from latentdrive.rl.dqn import DQNConfig
 from latentdrive.runtime import check_device
 from latentdrive.scenarios import RewardConfig, get_spec
 
-__all__ = ["PolicyTrainConfig"]
+__all__ = ["PolicyTrainConfig", "check_mission_pays"]
 
 
 class PolicyTrainConfig(Config):
@@ -53,12 +53,22 @@ class PolicyTrainConfig(Config):
             raise ValueError("mode 'latent' needs a trained BNN: give bnn (train-policy --bnn RUN)")
         if self.mode == "raw" and self.bnn:
             raise ValueError("mode 'raw' takes no BNN")
-        # An AV stops earning when it completes its mission, and the learner bootstraps
-        # through the time limit: if cruising forever is worth more than arriving, the
-        # optimal policy never arrives.
-        forever = self.reward.speed / (1.0 - self.dqn.gamma) if self.dqn.gamma < 1 else float("inf")
-        if self.reward.speed > 0 and self.reward.mission <= forever:
-            raise ValueError(f"reward.mission ({self.reward.mission:g}) must exceed reward.speed / (1 - dqn.gamma) "
-                             f"({forever:g}), what cruising forever is worth; otherwise the learner avoids "
-                             "completing its mission")
         return self
+
+
+def check_mission_pays(cfg: PolicyTrainConfig) -> None:
+    """Refuse a reward under which the optimal policy never completes its mission.
+
+    An AV stops earning when it completes its mission, and the learner bootstraps through
+    the time limit: if cruising forever (``speed / (1 - γ)``) is worth more than arriving,
+    arriving never pays. Checked when a run starts, not when a finished run is loaded, so
+    runs trained before the check still evaluate.
+
+    Raises:
+        ConfigError: naming both numbers.
+    """
+    forever = cfg.reward.speed / (1.0 - cfg.dqn.gamma)
+    if cfg.reward.speed > 0 and cfg.reward.mission <= forever:
+        raise ConfigError(f"reward.mission ({cfg.reward.mission:g}) must exceed reward.speed / (1 - dqn.gamma) "
+                          f"({forever:g}), what cruising forever is worth; otherwise the learner avoids "
+                          "completing its mission")

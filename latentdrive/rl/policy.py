@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -20,21 +20,24 @@ from numpy.typing import NDArray
 from latentdrive.actions import N_ACTIONS
 from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
 from latentdrive.bnn.train import load_trained_bottleneck
-from latentdrive.config import ConfigError, validate
+from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.models.vfan import QNetwork
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rollout import Policy, PolicyInput
+from latentdrive.scenarios import get_spec
 
 __all__ = [
     "CHECKPOINT",
     "CONFIG",
     "FeatureCache",
     "build_network",
+    "changed_scenarios",
     "encoder_config",
     "greedy_policy",
     "load_policy_network",
     "read_run_config",
+    "scenario_hashes",
 ]
 
 CHECKPOINT = "checkpoint.safetensors"
@@ -156,6 +159,21 @@ def read_run_config(run_dir: str | Path) -> dict[str, Any]:
     if not isinstance(data, dict) or data.get("kind") != "policy" or "train" not in data:
         raise ConfigError(f"{path}: not a policy run's config")
     return data
+
+
+def scenario_hashes(scenarios: Sequence[str]) -> dict[str, str]:
+    """Today's hash of each named scenario's spec (a run records the ones it trained on)."""
+    return {name: config_hash(get_spec(name)) for name in scenarios}
+
+
+def changed_scenarios(run_config: dict[str, Any]) -> list[str]:
+    """The training scenarios of a run (its config.json) whose spec changed since it was
+    trained; empty for runs that predate the record."""
+    old = run_config.get("scenario_hashes")
+    if not isinstance(old, dict):
+        return []
+    now = scenario_hashes(run_config["train"]["scenarios"])
+    return sorted(n for n, h in now.items() if old.get(n) != h)
 
 
 def load_policy_network(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple[QNetwork, PolicyTrainConfig]:

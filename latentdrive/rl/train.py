@@ -38,24 +38,25 @@ from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
-from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.rl.dqn import epsilon, update
 from latentdrive.rl.policy import (
     CHECKPOINT,
     CONFIG,
     FeatureCache,
     build_network,
+    changed_scenarios,
     encoder_config,
     epsilon_greedy,
     greedy_policy,
     load_policy_network,
     read_run_config,
+    scenario_hashes,
 )
 from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Replay
 from latentdrive.rollout import StepRecord, rollout
 from latentdrive.runlock import dir_lock
 from latentdrive.runtime import resolve_device, torch_settings
-from latentdrive.scenarios import get_spec
 from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed
 from latentdrive.vec import make_vec
 
@@ -228,23 +229,17 @@ def _write_config(run_dir: Path, cfg: PolicyTrainConfig, net: QNetwork, enc: Any
         "parameters": net.parameter_count(),
         "config_hash": config_hash(cfg),
         # Scenarios are named in the config; their specs can change between versions.
-        "scenario_hashes": _scenario_hashes(cfg),
+        "scenario_hashes": scenario_hashes(cfg.scenarios),
     }
     atomic_write_text(run_dir / CONFIG, json.dumps(data, indent=1) + "\n")
 
 
-def _scenario_hashes(cfg: PolicyTrainConfig) -> dict[str, str]:
-    return {name: config_hash(get_spec(name)) for name in cfg.scenarios}
-
-
 def _check_resume(run_dir: Path, cfg: PolicyTrainConfig) -> None:
     data = read_run_config(run_dir)
-    old = data.get("scenario_hashes")
-    if old is not None:
-        moved = sorted(n for n, h in _scenario_hashes(cfg).items() if old.get(n) != h)
-        if moved:
-            raise ConfigError(f"{run_dir}: the scenario spec of {', '.join(moved)} changed since this run "
-                              "was trained; train a new run")
+    moved = changed_scenarios(data)
+    if moved:
+        raise ConfigError(f"{run_dir}: the scenario spec of {', '.join(moved)} changed since this run "
+                          "was trained; train a new run")
     saved = data["train"]
     now = cfg.model_dump(mode="json")
     # The budget may grow on resumption; everything else must match.
@@ -325,6 +320,8 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
     enc = encoder_config(cfg)  # validates the BNN before anything is written
     if resume:
         _check_resume(root, cfg)
+    else:
+        check_mission_pays(cfg)
     init_state = _init_weights(cfg) if cfg.init_from and not resume else None
     root.mkdir(parents=True, exist_ok=True)
     with dir_lock(root, "train-policy"), torch_settings(True, device, cfg.threads):

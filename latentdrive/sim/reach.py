@@ -12,6 +12,7 @@ from __future__ import annotations
 import itertools
 from typing import NamedTuple
 
+from latentdrive.config import ConfigError
 from latentdrive.scenarios.spec import ScenarioSpec
 from latentdrive.sim.fast.network import LENGTH, Network, get_network
 
@@ -49,7 +50,8 @@ def mission_routes(spec: ScenarioSpec) -> list[MissionRoute]:
     along the last edge of the route (the edge that ends at the goal node).
 
     Raises:
-        ValueError: a goal the spawn region cannot reach at all.
+        ConfigError: a goal the spawn region cannot reach at all, or a goal distance longer
+            than the goal edge.
     """
     net = get_network(spec.layout, spec.lanes_count)
     top = max(spec.av_target_speeds)
@@ -58,14 +60,18 @@ def mission_routes(spec: ScenarioSpec) -> list[MissionRoute]:
         start = region.longitudinal.mean - region.longitudinal.clip
         goals = region.destinations or spec.goal.nodes
         for lane, goal in itertools.product(region.lanes, goals):
-            remaining = _edge_length(net, region.edge, lane) - start
-            if region.edge[1] == goal:
-                dist = spec.goal.longitudinal - start
+            if region.edge[1] == goal:  # the goal edge is the spawn edge itself
+                last, dist = region.edge, spec.goal.longitudinal - start
             else:
                 path = net.paths.get((region.edge[1], goal))
                 if not path:
-                    raise ValueError(f"{spec.name}: goal {goal!r} is unreachable from spawn edge {region.edge}")
+                    raise ConfigError(f"{spec.name}: goal {goal!r} is unreachable from spawn edge {region.edge}")
                 edges = list(itertools.pairwise(path))
-                dist = remaining + sum(_edge_length(net, e) for e in edges[:-1]) + spec.goal.longitudinal
+                last = edges[-1]
+                dist = (_edge_length(net, region.edge, lane) - start
+                        + sum(_edge_length(net, e) for e in edges[:-1]) + spec.goal.longitudinal)
+            if spec.goal.longitudinal > _edge_length(net, last):
+                raise ConfigError(f"{spec.name}: goal.longitudinal {spec.goal.longitudinal:g} m is beyond the end of "
+                                  f"goal edge {last} ({_edge_length(net, last):.0f} m)")
             out.append(MissionRoute(r, lane, goal, dist, dist / top))
     return out

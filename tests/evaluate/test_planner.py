@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 import pytest
 
@@ -11,6 +13,7 @@ from latentdrive.evaluate.planner import PlannerConfig, candidate_sequences, pla
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.rollout import rollout
+from latentdrive.sim.fast import FastBatch
 from latentdrive.vec import make_vec
 
 IDLE, LEFT, SLOWER = (ACTION_NAMES.index(a) for a in ("Idle", "Left", "Decelerate"))
@@ -67,3 +70,33 @@ def test_bad_planner_settings_are_refused(bad: dict[str, float]) -> None:
 
     with pytest.raises(ConfigError, match="planner"):
         planner_config(bad)
+
+
+@pytest.mark.parametrize("overrides", [{}, {"duration": 4}])
+def test_a_plan_scores_what_the_env_would_pay(overrides: dict[str, Any]) -> None:
+    """With no discount, penalty or tail, a plan's score is the env's summed reward for
+    the same actions: per-AV rewards, nothing after an AV finished or the episode ended,
+    and nothing past the time limit (``duration=4`` cuts the 6-step horizon)."""
+    from latentdrive.evaluate.planner import _scores
+    from latentdrive.scenarios import RewardConfig
+
+    cfg = PlannerConfig(depth=6, discount=1.0, crash_penalty=0.0, tail=0)
+    scenarios = ["merge", "roundabout", "highway"]
+    vec = make_vec(scenarios, 3, **overrides)
+    vec.reset(seed=7)
+    sim = vec.simulator
+    assert isinstance(sim, FastBatch)
+    plans = np.repeat(candidate_sequences(6, 6)[None, :, None, :], 2, axis=2)  # both AVs, constant
+    plans = np.repeat(plans, 3, axis=0)  # (E, C, A, D)
+    left = np.array([s.max_steps for s in sim.specs])
+    scores = _scores(sim, np.arange(3), plans, left, cfg, RewardConfig())
+    for c, action in enumerate(plans[0, :, 0, 0]):
+        env = make_vec(scenarios, 3, **overrides)
+        env.reset(seed=7)
+        paid = np.zeros(3)
+        over = np.zeros(3, dtype=bool)
+        for _ in range(6):
+            _, _, term, trunc, info = env.step(np.full((3, 2), action))
+            paid += np.where(over, 0.0, info["agents"].reward.sum(axis=1))
+            over |= term | trunc
+        np.testing.assert_allclose(scores[:, c], paid, atol=1e-9)

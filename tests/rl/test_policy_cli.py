@@ -150,3 +150,33 @@ def test_resume_refuses_a_run_whose_scenario_spec_changed(tmp_path, capsys, raw_
     (run / "config.json").write_text(json.dumps(cfg))
     _fails(capsys, ["train-policy", str(run), "--resume", "--steps", "200"], "scenario spec of intersection changed",
            tmp_path)
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--policy", "plan", "--set", "planner.depth=0"], "planner.depth"),
+    (["--policy", "plan", "--backend", "highway"], "needs the fast backend"),
+    (["--policy", "rule", "--set", "planner.depth=3"], "not evaluated"),
+    (["--policy", "plan", "--set", "depth=3"], "planner.KEY=VALUE"),
+])
+def test_bad_planner_settings_are_one_line(capsys, tmp_path, args, needle):
+    out = tmp_path / "out.json"
+    _fails(capsys, ["evaluate", "--scenarios", "merge", "--episodes", "2", "--json", str(out), *args], needle, tmp_path)
+    assert not out.exists()
+
+
+def test_the_highway_backend_evaluates_every_reference_but_the_planner(capsys, tmp_path):
+    out = tmp_path / "out.json"
+    assert main(["evaluate", "--scenarios", "merge", "--episodes", "1", "--backend", "highway", "-q",
+                 "--json", str(out)]) == 0
+    assert sorted(json.loads(out.read_text())["policies"]) == ["idle", "random", "rule", "stop"]
+
+
+def test_evaluating_a_run_whose_scenario_changed_warns(capsys, tmp_path, raw_run):
+    run = tmp_path / "old"
+    shutil.copytree(raw_run, run)
+    cfg = json.loads((run / "config.json").read_text())
+    scenario = cfg["train"]["scenarios"][0]
+    cfg["scenario_hashes"][scenario] = "0" * 16
+    (run / "config.json").write_text(json.dumps(cfg))
+    assert main(["evaluate", str(run), "--policy", "none", "--episodes", "1", "-q"]) == 0
+    assert f"trained on {scenario} as specified then" in capsys.readouterr().err

@@ -131,14 +131,33 @@ def test_evaluation_offsets_are_disjoint_sets():
         eval_reset_seed(-1)
 
 
-def test_a_reward_that_pays_more_for_never_arriving_is_refused():
+def test_a_reward_that_pays_more_for_never_arriving_is_refused(tmp_path):
     from latentdrive.config import ConfigError, validate
-    from latentdrive.rl.config import PolicyTrainConfig
+    from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
+    from latentdrive.rl.train import train_policy
 
     # Regression: with mission 1 and speed 0.2 at γ = 0.95, cruising forever (worth 4)
     # beat arriving, and no learned policy completed a merge.
+    old = validate(PolicyTrainConfig, {"mode": "raw", "reward": {"mission": 1.0}, "steps": 10})
     with pytest.raises(ConfigError, match="mission"):
-        validate(PolicyTrainConfig, {"mode": "raw", "reward": {"mission": 1.0}})
-    ok = validate(PolicyTrainConfig, {"mode": "raw", "reward": {"mission": 1.0}, "dqn": {"gamma": 0.5}})
-    assert ok.reward.mission == 1.0
-    assert validate(PolicyTrainConfig, {"mode": "raw"}).reward.mission > 0.2 / (1 - 0.95)
+        check_mission_pays(old)
+    with pytest.raises(ConfigError, match="mission"):
+        train_policy(old, tmp_path / "run", **_quiet())
+    assert not (tmp_path / "run").exists()
+    check_mission_pays(old.replace(dqn={"gamma": 0.5}))
+    check_mission_pays(validate(PolicyTrainConfig, {"mode": "raw"}))
+
+
+def test_a_run_trained_under_an_older_reward_still_loads(tmp_path, tiny):
+    import json
+
+    from latentdrive.rl.policy import load_policy_network
+    from latentdrive.rl.train import train_policy
+
+    train_policy(tiny(mode="raw", steps=100), tmp_path / "run", **_quiet())
+    path = tmp_path / "run" / "config.json"
+    data = json.loads(path.read_text())
+    data["train"]["reward"]["mission"] = 1.0
+    path.write_text(json.dumps(data))
+    _, cfg = load_policy_network(tmp_path / "run")
+    assert cfg.reward.mission == 1.0

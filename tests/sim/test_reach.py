@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import pytest
 
+from latentdrive.config import ConfigError
 from latentdrive.scenarios import SCENARIOS, get_spec
 from latentdrive.sim.reach import mission_routes
 
@@ -35,13 +38,14 @@ def test_a_goal_on_the_spawn_edge_counts_from_the_start() -> None:
     assert route.distance == pytest.approx(450 - (100 - 30))
 
 
-def test_an_unreachable_goal_is_named() -> None:
-    spec = get_spec("merge", goal={"nodes": ["a"]})
-    with pytest.raises(ValueError, match="unreachable"):
-        mission_routes(spec)
+def test_an_unreachable_or_impossible_goal_is_named() -> None:
+    with pytest.raises(ConfigError, match="unreachable"):
+        mission_routes(get_spec("merge", goal={"nodes": ["a"]}))
+    with pytest.raises(ConfigError, match="beyond the end"):
+        mission_routes(get_spec("merge", goal={"nodes": ["d"], "longitudinal": 5000.0}))
 
 
 def test_the_old_highway_goal_was_too_far() -> None:
     # Regression: the 550 m highway goal needed 80% of the duration at top speed.
-    spec = get_spec("highway", goal={"nodes": ["1"], "longitudinal": 550.0})
-    assert max(r.share(spec.duration) for r in mission_routes(spec)) > 0.7
+    spec = get_spec(str(Path(__file__).parents[2] / "docs" / "calibration" / "highway-550m.yaml"))
+    assert max(r.share(spec.duration) for r in mission_routes(spec)) == pytest.approx(0.8)

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from latentdrive.actions import ACTION_NAMES
+from latentdrive.actions import IDLE, N_ACTIONS
 from latentdrive.sim.fast.kstep import step_envs
 from latentdrive.sim.fast.network import LaneTable
 from latentdrive.sim.fast.scratch import Scratch
@@ -23,7 +23,6 @@ from latentdrive.sim.fast.state import ARRIVED, CRASHED, SPEED, TIME, State
 
 __all__ = ["BranchPart", "Branches", "take_rows"]
 
-_IDLE = ACTION_NAMES.index("Idle")
 
 
 def take_rows(st: State, rows: NDArray[np.int64]) -> State:
@@ -67,10 +66,12 @@ class Branches:
         acts = np.asarray(actions, dtype=np.int64)
         if acts.shape[0] != self.num_branches or acts.shape[1] < self.n_av:
             raise ValueError(f"actions must be ({self.num_branches}, >= {self.n_av}), got {acts.shape}")
+        if acts.size and (acts[:, : self.n_av].min() < 0 or acts[:, : self.n_av].max() >= N_ACTIONS):
+            raise ValueError(f"actions must be integers in [0, {N_ACTIONS})")
         for p in self._parts:
             a = acts[p.out, : self.n_av]
             done = p.state.flag[CRASHED, :, : self.n_av] | p.state.flag[ARRIVED, :, : self.n_av]
-            a = np.where(done, _IDLE, a)
+            a = np.where(done, IDLE, a)
             step_envs(p.table, p.state, np.arange(p.out.size, dtype=np.int64), a, p.scratch)
 
     def agents(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:

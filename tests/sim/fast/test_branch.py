@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from latentdrive.actions import IDLE
 from latentdrive.scenarios import SCENARIOS, get_spec
 from latentdrive.sim.fast import FastBatch
 from latentdrive.sim.fast.state import ARRIVED, CRASHED
@@ -14,7 +15,17 @@ def _idle_done(batch: FastBatch, actions: np.ndarray) -> np.ndarray:
     # The env drives crashed and arrived AVs Idle; branches do the same by themselves.
     st = batch._groups[0].state
     n = actions.shape[1]
-    return np.where(st.flag[CRASHED, :, :n] | st.flag[ARRIVED, :, :n], 1, actions)
+    return np.where(st.flag[CRASHED, :, :n] | st.flag[ARRIVED, :, :n], IDLE, actions)
+
+
+def _idle_done_all(batch: FastBatch, actions: np.ndarray) -> np.ndarray:
+    out = actions.copy()
+    for e in range(batch.num_envs):
+        scene = batch.scene(e)
+        assert scene.arrived is not None
+        done = scene.crashed[:2] | scene.arrived[:2]
+        out[e] = np.where(done, IDLE, actions[e])
+    return out
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
@@ -50,9 +61,16 @@ def test_branches_of_a_mixed_batch_keep_their_order() -> None:
     batch = FastBatch(specs)
     batch.reset([1, 2, 3])
     branches = batch.branch([1, 0], copies=1)
-    speed, _, _ = branches.agents()
-    np.testing.assert_array_equal(speed[0], batch.scene(1).speed[:2])
-    np.testing.assert_array_equal(speed[1], batch.scene(0).speed[:2])
+    rng = np.random.default_rng(3)
+    for _ in range(3):  # both layouts advance, each with its own environment's actions
+        acts = rng.integers(0, 5, (3, 2))
+        branches.advance(acts[[1, 0]])
+        batch.advance(_idle_done_all(batch, acts))
+    speed, crashed, _ = branches.agents()
+    for k, env in enumerate([1, 0]):
+        np.testing.assert_array_equal(speed[k], batch.scene(env).speed[:2])
+        np.testing.assert_array_equal(crashed[k], batch.scene(env).crashed[:2])
+    np.testing.assert_array_equal(branches.time(), [batch.scene(1).time, batch.scene(0).time])
 
 
 def test_bad_branch_requests_are_refused() -> None:
@@ -64,6 +82,8 @@ def test_bad_branch_requests_are_refused() -> None:
         batch.branch([0], 0)
     with pytest.raises(ValueError, match="actions must be"):
         batch.branch([0], 2).advance(np.zeros((3, 2), dtype=np.int64))
+    with pytest.raises(ValueError, match="integers in"):
+        batch.branch([0], 1).advance(np.array([[0, 5]]))
     mixed = FastBatch([get_spec("merge"), get_spec("merge", n_av=3)])
     mixed.reset([0, 1])
     with pytest.raises(ValueError, match="AV count"):
