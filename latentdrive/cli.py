@@ -105,7 +105,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     cfg = validate(ObservationConfig, parse_override_args(args.overrides), prefix="observation.")
     _say(f"benchmarking {len(names)} scenario(s) on the {args.backend} backend ...")
     if args.backend == "fast":
-        from latentdrive.sim.fast.validate import format_throughput, measure_throughput
+        from latentdrive.sim.validate import format_throughput, measure_throughput
 
         rows = []
         for name in names:
@@ -130,7 +130,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _cmd_validate_backend(args: argparse.Namespace) -> int:
     from latentdrive.scenarios import SCENARIOS, get_spec
-    from latentdrive.sim.fast.validate import fidelity_table, format_fidelity
+    from latentdrive.sim.validate import fidelity_table, format_fidelity
 
     names = args.scenarios.split(",") if args.scenarios else list(SCENARIOS)
     for name in names:

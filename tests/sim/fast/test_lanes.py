@@ -6,7 +6,7 @@ import pytest
 from latentdrive.sim.fast import kgeom
 from latentdrive.sim.fast import lanes as L
 from latentdrive.sim.fast.network import CURVE_BOX, LENGTH, get_network
-from latentdrive.sim.highway import build_road
+from latentdrive.sim.roads import build_road
 
 LAYOUTS = ("roundabout", "intersection", "merge", "exit", "highway")
 
