@@ -108,20 +108,3 @@ def test_presets_place_their_vehicles_for_every_seed(name):
     backend = HighwayBackend(get_spec(name))
     for seed in range(300):
         backend.reset(seed)
-
-
-@pytest.mark.parametrize(
-    ("region", "needle"),
-    [
-        ({"edge": ["a", "zz"]}, "not in the merge layout"),
-        ({"lanes": [5]}, "has lanes 0..1"),
-        ({"longitudinal": {"mean": 220.0, "clip": 20.0}}, "leaves edge"),
-    ],
-)
-def test_bad_spawn_region_is_named(region, needle):
-    from latentdrive.scenarios import ScenarioError
-
-    base = get_spec("merge").av_spawn[0].model_dump()
-    with pytest.raises(ScenarioError, match=needle) as exc:
-        HighwayBackend(get_spec("merge", av_spawn=[{**base, **region}]))
-    assert "av_spawn[0]" in str(exc.value)

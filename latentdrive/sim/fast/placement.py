@@ -25,7 +25,7 @@ from numpy.typing import NDArray
 
 from latentdrive.scenarios.spec import ClippedGaussian, ScenarioError, ScenarioSpec, SpawnRegion
 from latentdrive.sim.fast.lanes import heading_at, position
-from latentdrive.sim.fast.network import EDGE_N_LANES, Network
+from latentdrive.sim.fast.network import EDGE_N_LANES, LENGTH, Network
 
 __all__ = ["CLEARANCE", "Placement", "PlacementPlan", "draw_clipped", "draw_index", "draw_uniform", "place_vehicles"]
 
@@ -101,24 +101,32 @@ class PlacementPlan:
     """A scenario's spawn regions resolved against a layout, ready to place many episodes.
 
     Raises:
-        ScenarioError: a spawn edge or lane used by the scenario is not in the layout.
+        ScenarioError: a spawn region names an edge or a lane the layout does not have, or
+            its longitudinal window leaves the edge.
     """
 
     def __init__(self, spec: ScenarioSpec, network: Network) -> None:
         self.spec, self.network = spec, network
         self._regions: dict[int, _Region] = {}
-        for regions, n in ((spec.av_spawn, spec.n_av), (spec.hv_spawn, spec.n_hv)):
-            for region in regions[: n]:
-                self._regions.setdefault(id(region), self._resolve(region))
+        for field in ("av_spawn", "hv_spawn"):
+            for i, region in enumerate(getattr(spec, field)):
+                self._regions.setdefault(id(region), self._resolve(region, f"scenario {spec.name!r}: {field}[{i}]"))
 
-    def _resolve(self, region: SpawnRegion) -> _Region:
+    def _resolve(self, region: SpawnRegion, where: str) -> _Region:
         edge = (region.edge[0], region.edge[1])
         if edge not in self.network.edge_keys:
-            raise ScenarioError(f"scenario {self.spec.name!r}: edge {region.edge} is not in the {self.spec.layout} layout")
+            raise ScenarioError(f"{where}: edge {region.edge} is not in the {self.spec.layout} layout")
         n_lanes = int(self.network.table.edges[EDGE_N_LANES, self.network.edge(edge)])
-        if max(region.lanes) >= n_lanes:
-            raise ScenarioError(f"scenario {self.spec.name!r}: edge {region.edge} has {n_lanes} lanes, spawn asks for lane {max(region.lanes)}")
-        return _Region(region, [self.network.lane((*edge, k)) for k in region.lanes])
+        if max(region.lanes) >= n_lanes or min(region.lanes) < 0:
+            raise ScenarioError(f"{where}: edge {region.edge} has lanes 0..{n_lanes - 1}, not {region.lanes}")
+        lanes = [self.network.lane((*edge, k)) for k in region.lanes]
+        g = region.longitudinal
+        length = min(float(self.network.table.geo[LENGTH, k]) for k in lanes)
+        if g.mean - g.clip < 0 or g.mean + g.clip > length:
+            raise ScenarioError(
+                f"{where}: longitudinal window [{g.mean - g.clip:g}, {g.mean + g.clip:g}] m "
+                f"leaves edge {region.edge} (length {length:g} m)")
+        return _Region(region, lanes)
 
     def place(self, rng: np.random.Generator) -> Placement:
         """Place the AVs then the HVs, drawing from ``rng``.
@@ -194,7 +202,7 @@ def place_vehicles(spec: ScenarioSpec, network: Network, rng: np.random.Generato
     """Place the scenario's AVs then HVs, drawing from ``rng`` (see the module docstring).
 
     Raises:
-        ScenarioError: a spawn edge or lane is not in the layout, or a region is too full
-            to place another vehicle apart from the others.
+        ScenarioError: a spawn region does not fit the layout (:class:`PlacementPlan`), or
+            a region is too full to place another vehicle apart from the others.
     """
     return PlacementPlan(spec, network).place(rng)
