@@ -48,9 +48,6 @@ __all__ = [
     "wrap_to_pi",
 ]
 
-# End-of-lane allowance (metres): a car length, as in highway-env's on-lane test.
-VEHICLE_LENGTH = 5.0
-
 
 @njit
 def wrap_to_pi(a: float) -> float:
