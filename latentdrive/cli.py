@@ -115,7 +115,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     cfg = validate(ObservationConfig, parse_override_args(args.overrides), prefix="observation.")
     _say(f"benchmarking {len(names)} scenario(s) on the {args.backend} backend ...")
     if args.backend == "fast":
-        from latentdrive.sim.fast.validate import format_throughput, measure_throughput
+        from latentdrive.sim.validate import format_throughput, measure_throughput
 
         rows = []
         for name in names:
@@ -140,7 +140,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
 
 def _cmd_validate_backend(args: argparse.Namespace) -> int:
     from latentdrive.scenarios import SCENARIOS, get_spec
-    from latentdrive.sim.fast.validate import fidelity_table, format_fidelity
+    from latentdrive.sim.validate import fidelity_table, format_fidelity
 
     names = args.scenarios.split(",") if args.scenarios else list(SCENARIOS)
     for name in names:
@@ -289,7 +289,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bnn-study", help="dataset, BNNs of latent size 16/32/64 and λ>0, evaluation, figures")
     s.add_argument("out", help="study directory (rerun the same command to resume)")
-    s.add_argument("--preset", default="small", help="tiny, small (default, ~30 min on 2 CPU cores), paper, or a .yaml file")
+    s.add_argument("--preset", default="small", help="tiny, small (default, ~40 min on a 2-core CPU), paper, or a .yaml file")
     s.add_argument("-q", "--quiet", action="store_true")
     _add_set(s, "study override, repeatable (--set collect.episodes=20 --set train.mixed_epochs=4)")
     s.set_defaults(func=_cmd_bnn_study)

@@ -18,7 +18,6 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -36,14 +35,13 @@ from latentdrive.bnn.vehicles import VehicleCounts
 from latentdrive.config import Config, ConfigError, load_yaml, merge_overrides, validate
 from latentdrive.data.collect import CollectConfig, collect
 from latentdrive.data.dataset import ShardDataset
+from latentdrive.experiments.heldout import HeldOut, held_out
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
 from latentdrive.runlock import dir_lock
 
 __all__ = [
     "BNNStudyConfig",
-    "HeldOut",
     "figures_from_study",
-    "held_out",
     "load_study_config",
     "run_bnn_study",
     "run_name",
@@ -135,55 +133,6 @@ def train_on_dataset(
             "dataset": str(Path(dataset_dir).resolve()), "val_fraction": val_fraction,
             "train_episodes": train_ids.tolist(), "val_episodes": val_ids.tolist()}) + "\n")
         return train_bnn(train_cfg, model_cfg, train_fn, val_fn, run, resume=resume, progress=progress)
-
-
-@dataclass
-class HeldOut:
-    """Held-out samples, at most ``per_scenario`` of each scenario, in dataset order.
-
-    ``noisy``/``clean``: ``(n, 4, T, H, W)`` float32; ``scenario``: ``(n,)`` int64 indices
-    into ``names``.
-    """
-
-    names: list[str]
-    noisy: np.ndarray
-    clean: np.ndarray
-    scenario: np.ndarray
-
-    def by_scenario(self, features: np.ndarray) -> dict[str, np.ndarray]:
-        """Split ``(n, ...)`` features into one array per scenario present."""
-        return {name: features[self.scenario == i] for i, name in enumerate(self.names) if np.any(self.scenario == i)}
-
-    def first(self, name: str) -> int:
-        """Index of the first held-out sample of scenario ``name`` (-1 when absent)."""
-        if name not in self.names:
-            return -1
-        idx = np.flatnonzero(self.scenario == self.names.index(name))
-        return int(idx[0]) if idx.size else -1
-
-
-def held_out(ds: ShardDataset, episodes: np.ndarray, per_scenario: int, seed: int = 0) -> HeldOut:
-    """Collect up to ``per_scenario`` samples of each scenario from ``episodes``.
-
-    Samples are drawn from a shuffled pass (so they spread over episodes), then kept in
-    their pass order; memory is ``per_scenario × scenarios × 2 × 4·T·H·W × 4`` bytes.
-    """
-    names = list(ds.scenario_names)
-    keep: dict[str, list[np.ndarray]] = {"noisy": [], "clean": [], "scenario": []}
-    counts = np.zeros(len(names), dtype=np.int64)
-    for batch in ds.batches(256, episodes, seed=seed, epoch=0, mixed=False):
-        s = batch.scenario.numpy()
-        take = np.zeros(len(s), dtype=bool)
-        for i in range(len(s)):  # per sample of a 256-batch, not a hot path
-            if counts[s[i]] < per_scenario:
-                take[i] = True
-                counts[s[i]] += 1
-        keep["noisy"].append(batch.noisy.numpy()[take])
-        keep["clean"].append(batch.clean.numpy()[take])
-        keep["scenario"].append(s[take])
-        if np.all(counts[np.unique(ds.episode_scenario(episodes))] >= per_scenario):
-            break
-    return HeldOut(names, *(np.concatenate(keep[k]) for k in ("noisy", "clean", "scenario")))
 
 
 @torch.no_grad()
@@ -301,9 +250,10 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
     atomic_write_text(out / "report.md", format_report(report))
 
     say(f"[4/4] figures -> {out / 'figures'}")
+    # Imported here: matplotlib is needed only once figures are drawn, not by train-bnn.
     from latentdrive.experiments.bnn_figures import write_bnn_figures
 
-    write_bnn_figures(out, cfg, data, report)
+    write_bnn_figures(out, data, report, cfg.train.seed)
     return report
 
 
@@ -321,7 +271,8 @@ def figures_from_study(out: str | Path) -> list[Path]:
     _, val_ids = _split(ds, cfg.val_fraction, cfg.train.seed)
     from latentdrive.experiments.bnn_figures import write_bnn_figures
 
-    return write_bnn_figures(out, cfg, held_out(ds, val_ids, cfg.eval_samples, seed=cfg.train.seed), report)
+    return write_bnn_figures(out, held_out(ds, val_ids, cfg.eval_samples, seed=cfg.train.seed), report,
+                             cfg.train.seed)
 
 
 def _matrix_md(names: list[str], m: list[list[float]]) -> str:

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import matplotlib
 
@@ -15,11 +15,9 @@ import numpy as np
 import torch
 
 from latentdrive.bnn.train import load_trained_bottleneck
+from latentdrive.experiments.heldout import HeldOut
 from latentdrive.models.bottleneck import BottleneckNetwork
 from latentdrive.observe import CHANNELS
-
-if TYPE_CHECKING:
-    from latentdrive.experiments.bnn import BNNStudyConfig, HeldOut
 
 __all__ = ["write_bnn_figures"]
 
@@ -101,11 +99,12 @@ def reconstructions(out: Path, data: HeldOut, run_names: list[str], notes: dict[
     return _save(fig, out / "figures" / "bnn_reconstruction.png")
 
 
-def latents_before_after(out: Path, cfg: BNNStudyConfig, data: HeldOut, run_name: str) -> Path:
-    """Latents (3 pairs × d) of a roundabout and an intersection, at initialization and after training."""
+def latents_before_after(out: Path, data: HeldOut, run_name: str, train_seed: int) -> Path:
+    """Latents (3 pairs × d) of a roundabout and an intersection, at initialization and
+    after training; ``train_seed`` is the seed the run was trained with."""
     trained = load_trained_bottleneck(out / "runs" / run_name)
     # The initial weights are those train_bnn drew: the same seed, the same constructor.
-    torch.manual_seed(cfg.train.seed)
+    torch.manual_seed(train_seed)
     initial = BottleneckNetwork(trained.cfg).eval()
     shown = [s for s in SHOWN if data.first(s) >= 0]
     fig, axes = plt.subplots(len(shown), 2, figsize=(12, 2.4 * len(shown) + 0.8), squeeze=False)
@@ -155,8 +154,9 @@ def _recall_notes(report: dict[str, Any]) -> dict[str, str]:
     return notes
 
 
-def write_bnn_figures(out: str | Path, cfg: BNNStudyConfig, data: HeldOut, report: dict[str, Any]) -> list[Path]:
-    """Every figure of the study, into ``out/figures``."""
+def write_bnn_figures(out: str | Path, data: HeldOut, report: dict[str, Any], train_seed: int) -> list[Path]:
+    """Every figure of the study, into ``out/figures`` (``train_seed``: the seed its runs
+    were trained with, which drew their initial weights)."""
     out = Path(out)
     names = list(report["runs"])
     plain = [n for n in names if report["runs"][n]["lambda"] == 0]
@@ -164,6 +164,6 @@ def write_bnn_figures(out: str | Path, cfg: BNNStudyConfig, data: HeldOut, repor
     return [
         loss_curves(out, names, (report.get("noisy_input_vehicles") or {}).get("vehicle_recall")),
         reconstructions(out, data, plain, _recall_notes(report)),
-        latents_before_after(out, cfg, data, largest),
+        latents_before_after(out, data, largest, train_seed),
         distance_matrices(out, report),
     ]

@@ -1,25 +1,24 @@
 """The reference backend: highway-env 1.12.x, the simulator the paper used.
 
-This is the only module that imports highway-env. It borrows highway-env's road layouts
-and vehicle models (IDM + MOBIL human drivers, MDPVehicle meta-action controllers on a
-kinematic bicycle), but places every vehicle itself from the :class:`ScenarioSpec`, so
-that every scenario can hold several AVs, and it never constructs highway-env's own
-environments, whose resets write driver constants on shared classes.
+It runs highway-env's vehicle models (IDM + MOBIL human drivers, MDPVehicle meta-action
+controllers on a kinematic bicycle) on highway-env's road layouts
+(:mod:`latentdrive.sim.roads`), but places every vehicle itself from the
+:class:`ScenarioSpec`, with the fast backend's placement, so that every scenario can hold
+several AVs and both backends start from the same instant. It never constructs
+highway-env's own environments, whose resets write driver constants on shared classes.
+
+highway-env is imported by three modules only: this one (vehicles), :mod:`latentdrive.sim.roads`
+(roads) and :mod:`latentdrive.sim.fast.network` (which reads a road into arrays once); a
+contract in pyproject.toml keeps it so.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from functools import cache
 from typing import Any
 
 import numpy as np
 from highway_env.envs.common.observation import OccupancyGridObservation
-from highway_env.envs.exit_env import ExitEnv
-from highway_env.envs.highway_env import HighwayEnv
-from highway_env.envs.intersection_env import IntersectionEnv
-from highway_env.envs.merge_env import MergeEnv
-from highway_env.envs.roundabout_env import RoundaboutEnv
 from highway_env.road.road import Road
 from highway_env.vehicle.behavior import IDMVehicle
 from highway_env.vehicle.controller import MDPVehicle
@@ -27,19 +26,12 @@ from highway_env.vehicle.controller import MDPVehicle
 from latentdrive.actions import META_ACTIONS
 from latentdrive.config import ObservationConfig
 from latentdrive.scenarios.spec import DriverParams, ScenarioError, ScenarioSpec
-from latentdrive.scene import Kind, RoadRaster, Scene, rasterize_strips
+from latentdrive.scene import Kind, Scene
+from latentdrive.sim.fast.network import get_network
+from latentdrive.sim.fast.placement import PlacementPlan
+from latentdrive.sim.roads import RoadHost, build_road, layout_raster
 
 __all__ = ["HighwayBackend", "ScenarioError"]
-
-# Road builders of highway-env, called on a small host object rather than on a constructed
-# env: constructing IntersectionEnv resets it, and its reset mutates IDMVehicle's class.
-_ROAD_BUILDERS: dict[str, tuple[Any, str]] = {
-    "roundabout": (RoundaboutEnv, "_make_road"),
-    "intersection": (IntersectionEnv, "_make_road"),
-    "merge": (MergeEnv, "_make_road"),
-    "exit": (ExitEnv, "_create_road"),
-    "highway": (HighwayEnv, "_create_road"),
-}
 
 # Driver parameters written per instance; instance attributes shadow the class ones.
 _DRIVER_ATTRS = {
@@ -55,52 +47,6 @@ _DRIVER_ATTRS = {
 }
 
 
-class _RoadHost:
-    """Just enough of an AbstractEnv for highway-env's road builders."""
-
-    def __init__(self, config: dict[str, Any], np_random: np.random.Generator) -> None:
-        self.config = config
-        self.np_random = np_random
-        self.road: Road | None = None
-        self.vehicle: Any = None
-
-
-def _road_config(layout: str, lanes_count: int) -> dict[str, Any]:
-    env_cls, _ = _ROAD_BUILDERS[layout]
-    config: dict[str, Any] = env_cls.default_config()
-    config.update(lanes_count=lanes_count, show_trajectories=False)
-    return config
-
-
-def build_road(layout: str, lanes_count: int, rng: np.random.Generator) -> Road:
-    """A fresh highway-env Road of a layout, drawing from ``rng``."""
-    env_cls, method = _ROAD_BUILDERS[layout]
-    host = _RoadHost(_road_config(layout, lanes_count), rng)
-    getattr(env_cls, method)(host)
-    assert host.road is not None
-    return host.road
-
-
-@cache
-def layout_raster(layout: str, lanes_count: int, resolution: float = 0.5) -> RoadRaster:
-    """Drivable-area raster of a layout, computed once per (layout, lanes) and cached.
-
-    Every lane is sampled along its centreline every ``resolution/2`` metres; the samples
-    are handed to :func:`latentdrive.scene.rasterize_strips`.
-    """
-    road = build_road(layout, lanes_count, np.random.default_rng(0))
-    centers, headings, half = [], [], []
-    for lanes in (lanes for tos in road.network.graph.values() for lanes in tos.values()):
-        for lane in lanes:
-            s = np.arange(0.0, lane.length + 1e-9, resolution / 2)
-            centers.append(np.array([lane.position(si, 0.0) for si in s]))
-            headings.append(np.array([lane.heading_at(si) for si in s]))
-            half.append(np.array([lane.width_at(si) / 2 for si in s]))
-    raster = rasterize_strips(np.concatenate(centers), np.concatenate(headings), np.concatenate(half), resolution)
-    raster.mask.flags.writeable = False
-    return raster
-
-
 def _set_driver(vehicle: IDMVehicle, params: DriverParams, delta: float, timer: float) -> None:
     for field, attr in _DRIVER_ATTRS.items():
         setattr(vehicle, attr, getattr(params, field))
@@ -108,25 +54,6 @@ def _set_driver(vehicle: IDMVehicle, params: DriverParams, delta: float, timer: 
     # IDMVehicle seeds its lane-change timer from the class-level delay at construction;
     # the placement computed it from the spec's delay instead.
     vehicle.timer = timer
-
-
-def _check_regions(spec: ScenarioSpec, road: Road) -> None:
-    """Every spawn region names an edge and lanes of the layout, and its window lies on the lane."""
-    graph = road.network.graph
-    for field in ("av_spawn", "hv_spawn"):
-        for i, region in enumerate(getattr(spec, field)):
-            where = f"scenario {spec.name!r}: {field}[{i}]"
-            lanes = graph.get(region.edge[0], {}).get(region.edge[1])
-            if lanes is None:
-                raise ScenarioError(f"{where}: edge {region.edge} is not in the {spec.layout} layout")
-            if max(region.lanes) >= len(lanes) or min(region.lanes) < 0:
-                raise ScenarioError(f"{where}: edge {region.edge} has lanes 0..{len(lanes) - 1}, not {region.lanes}")
-            g = region.longitudinal
-            length = min(lanes[k].length for k in region.lanes)
-            if g.mean - g.clip < 0 or g.mean + g.clip > length:
-                raise ScenarioError(
-                    f"{where}: longitudinal window [{g.mean - g.clip:g}, {g.mean + g.clip:g}] m "
-                    f"leaves edge {region.edge} (length {length:g} m)")
 
 
 class HighwayBackend:
@@ -141,11 +68,6 @@ class HighwayBackend:
     def __init__(self, spec: ScenarioSpec) -> None:
         self.spec = spec
         self.raster = layout_raster(spec.layout, spec.lanes_count)
-        _check_regions(spec, build_road(spec.layout, spec.lanes_count, np.random.default_rng(0)))
-        # Imported here: the layout tables are built from this module's road builders.
-        from latentdrive.sim.fast.network import get_network
-        from latentdrive.sim.fast.placement import PlacementPlan
-
         self._plan = PlacementPlan(spec, get_network(spec.layout, spec.lanes_count))
         self.road: Road | None = None
         self.avs: list[MDPVehicle] = []
@@ -253,7 +175,7 @@ class HighwayBackend:
         ``latentdrive bench`` as the per-agent-frame cost of highway-env's grid.
         """
         assert self.road is not None, "reset() first"
-        host = _RoadHost(_road_config(self.spec.layout, self.spec.lanes_count), np.random.default_rng(0))
+        host = RoadHost.for_layout(self.spec.layout, self.spec.lanes_count, np.random.default_rng(0))
         host.road = self.road
         ahead = cfg.width * cfg.resolution - cfg.behind
         half = cfg.height * cfg.resolution / 2

@@ -3,7 +3,7 @@ import pytest
 
 from latentdrive.scenarios import SCENARIOS, get_spec
 from latentdrive.scene import Kind
-from latentdrive.sim.highway import HighwayBackend, layout_raster
+from latentdrive.sim.highway import HighwayBackend
 
 
 @pytest.mark.parametrize("name", SCENARIOS)
@@ -88,27 +88,6 @@ def test_lane_change_left_moves_one_lane_left():
     assert scene.position[0, 1] == pytest.approx(y0 - 4.0, abs=0.3)
 
 
-def test_merge_raster_literal_geometry():
-    raster = layout_raster("merge", 3)
-    pts = np.array([
-        [100.0, 0.0],    # lane 0 centre
-        [100.0, 2.0],    # boundary between lanes 0 and 1
-        [100.0, 4.0],    # lane 1 centre
-        [100.0, 9.5],    # grass between the highway (y <= 6) and the ramp (12.5..16.5)
-        [100.0, 14.5],   # ramp centre
-        [100.0, -4.0],   # left of the highway
-        [600.0, 0.0],    # beyond the road's end (460 m)
-    ])
-    assert raster.sample(pts).tolist() == [1, 1, 1, 0, 1, 0, 0]
-
-
-def test_raster_is_cached_and_read_only():
-    a = layout_raster("roundabout", 3)
-    assert a is layout_raster("roundabout", 3)
-    with pytest.raises(ValueError):
-        a.mask[0, 0] = 1
-
-
 def test_arrival_is_flagged_on_the_goal_edge():
     # One AV on an empty merge, accelerating: it passes x = 310 m + the goal distance (edge c-d) in time.
     spec = get_spec("merge", n_hv=0, n_av=1, duration=20)
@@ -129,20 +108,3 @@ def test_presets_place_their_vehicles_for_every_seed(name):
     backend = HighwayBackend(get_spec(name))
     for seed in range(300):
         backend.reset(seed)
-
-
-@pytest.mark.parametrize(
-    ("region", "needle"),
-    [
-        ({"edge": ["a", "zz"]}, "not in the merge layout"),
-        ({"lanes": [5]}, "has lanes 0..1"),
-        ({"longitudinal": {"mean": 220.0, "clip": 20.0}}, "leaves edge"),
-    ],
-)
-def test_bad_spawn_region_is_named(region, needle):
-    from latentdrive.scenarios import ScenarioError
-
-    base = get_spec("merge").av_spawn[0].model_dump()
-    with pytest.raises(ScenarioError, match=needle) as exc:
-        HighwayBackend(get_spec("merge", av_spawn=[{**base, **region}]))
-    assert "av_spawn[0]" in str(exc.value)

@@ -3,7 +3,7 @@
 Same road geometry (read from highway-env's own builders), vehicle models, placement,
 randomization and Scene output as :mod:`latentdrive.sim.highway`, reproduced equation by
 equation; ``README.md`` beside this file lists what is reproduced and the few known
-differences, :mod:`latentdrive.sim.fast.validate` measures fidelity and throughput.
+differences, :mod:`latentdrive.sim.validate` measures fidelity and throughput.
 
 - :class:`FastBatch`: B environments (mixed scenarios allowed), one call per step.
 - :class:`FastBackend`: one environment behind the Backend protocol.

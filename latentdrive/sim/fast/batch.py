@@ -48,6 +48,7 @@ from latentdrive.sim.fast.state import (
     slots_needed,
     write_template,
 )
+from latentdrive.sim.roads import layout_raster
 
 __all__ = ["FastBatch"]
 
@@ -62,12 +63,6 @@ class _Group:
     scratch: Scratch
     envs: list[int]  # batch index of each row
     raster: RoadRaster
-
-
-def _raster(layout: str, lanes_count: int) -> RoadRaster:
-    from latentdrive.sim.highway import layout_raster
-
-    return layout_raster(layout, lanes_count)
 
 
 class FastBatch:
@@ -102,7 +97,7 @@ class FastBatch:
             template = allocate(len(envs), n_slots, n_speeds, route_cap, net.n_nodes)
             g = len(self._groups)
             self._groups.append(_Group(net, state, template, make_scratch(net.n_lanes, n_slots), envs,
-                                       _raster(layout, lanes_count)))
+                                       layout_raster(layout, lanes_count)))
             for row, i in enumerate(envs):
                 self._where[i] = (g, row)
                 write_template(template, row, self.specs[i], net)

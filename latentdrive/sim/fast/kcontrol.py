@@ -12,7 +12,6 @@ import math
 
 from latentdrive.sim.fast._jit import njit
 from latentdrive.sim.fast.kgeom import (
-    VEHICLE_LENGTH,
     closest_lane,
     lane_distance,
     lane_heading,
@@ -53,6 +52,7 @@ from latentdrive.sim.fast.state import (
     TARGET,
     TARGET_SPEED,
     TIMER,
+    VEHICLE_LENGTH,
     VLENGTH,
     State,
     X,

@@ -1,8 +1,10 @@
 """Scalar lane geometry for the compiled kernels (one lane, one point per call).
 
-The same definitions as :mod:`latentdrive.sim.fast.lanes` (which vectorizes them for
-numpy callers), written as scalar functions that compile to tight loops. Coordinates:
-world ``(x, y)`` metres; Frenet ``s`` along the lane, ``r`` to its right; radians.
+highway-env's definitions, as :mod:`latentdrive.sim.fast.lanes` writes them for Python
+callers, here compiled to tight loops; compiled code takes its trigonometry from the C
+library instead of numpy, which is why placement, whose values must equal highway-env's
+bit for bit, uses the other module. Coordinates: world ``(x, y)`` metres; Frenet ``s``
+along the lane, ``r`` to its right; radians.
 """
 
 from __future__ import annotations
@@ -45,9 +47,6 @@ __all__ = [
     "not_zero",
     "wrap_to_pi",
 ]
-
-# End-of-lane allowance (metres): a car length, as in highway-env's on-lane test.
-VEHICLE_LENGTH = 5.0
 
 
 @njit

@@ -13,15 +13,28 @@ from __future__ import annotations
 import math
 
 from latentdrive.sim.fast._jit import njit
-from latentdrive.sim.fast.kgeom import VEHICLE_LENGTH, in_box, lane_local
+from latentdrive.sim.fast.kgeom import in_box, lane_local
 from latentdrive.sim.fast.ksort import sort_by_key
 from latentdrive.sim.fast.network import LENGTH, REGION_BOX, WIDTH, LaneTable
 from latentdrive.sim.fast.scratch import Scratch
-from latentdrive.sim.fast.state import HEADING, KIND, N_TOT, N_VEH, PAD, TARGET, State, X, Y
+from latentdrive.sim.fast.state import (
+    HEADING,
+    KIND,
+    N_TOT,
+    N_VEH,
+    PAD,
+    TARGET,
+    VEHICLE_LENGTH,
+    State,
+    X,
+    Y,
+)
 
 __all__ = ["build_members", "index_targets", "neighbours"]
 
-# Lateral margin beyond half a lane width within which a vehicle counts as on the lane, m.
+# Lateral margin beyond half a lane width within which a vehicle counts as on the lane, m;
+# lengthwise, it counts up to a car length (VEHICLE_LENGTH) beyond either end, as in
+# highway-env's on-lane test.
 ON_LANE_MARGIN = 1.0
 
 

@@ -2,7 +2,7 @@
 
 Geometry is extracted rather than re-derived: every lane parameter (start, direction,
 radius, phases, widths, speed limits, priorities, the graph's edge order) is copied from
-the :class:`highway_env.road.road.Road` that :func:`latentdrive.sim.highway.build_road`
+the :class:`highway_env.road.road.Road` that :func:`latentdrive.sim.roads.build_road`
 builds, so both backends drive on the same numbers by construction. highway-env is only
 touched here, once per ``(layout, lanes_count)``; the arrays are what the compiled
 kernels read.
@@ -19,7 +19,12 @@ from functools import cache, cached_property
 from typing import NamedTuple
 
 import numpy as np
+from highway_env.road.lane import CircularLane, SineLane, StraightLane
+from highway_env.road.regulation import RegulatedRoad
+from highway_env.vehicle.objects import Landmark, Obstacle
 from numpy.typing import NDArray
+
+from latentdrive.sim.roads import build_road
 
 __all__ = ["CIRCULAR", "GEO_ROWS", "INT_ROWS", "SINE", "STRAIGHT", "LaneTable", "Network", "get_network"]
 
@@ -163,8 +168,6 @@ def _box(points: FArr, pad: float) -> FArr:
 
 
 def _lane_row(lane: object) -> dict[str, float]:
-    from highway_env.road.lane import CircularLane, SineLane, StraightLane
-
     row = dict.fromkeys(("kind", *GEO_ROWS), 0.0)
     if isinstance(lane, CircularLane):
         row.update(kind=CIRCULAR, center_x=lane.center[0], center_y=lane.center[1], radius=lane.radius,
@@ -216,11 +219,6 @@ def _all_paths(network: object, nodes: tuple[str, ...]) -> dict[tuple[str, str],
 @cache
 def get_network(layout: str, lanes_count: int) -> Network:
     """The lane network of a layout, built once per ``(layout, lanes_count)``."""
-    from highway_env.road.regulation import RegulatedRoad
-    from highway_env.vehicle.objects import Landmark, Obstacle
-
-    from latentdrive.sim.highway import build_road
-
     road = build_road(layout, lanes_count, np.random.default_rng(0))
     graph = road.network.graph
     nodes: list[str] = []

@@ -5,7 +5,9 @@ Every draw comes from one ``numpy.random.Generator`` in a fixed order, vehicle b
 free, then the speed, then the destination, then, for an HV, its IDM exponent δ. A spot is
 free when it is ``CLEARANCE`` metres from every placed vehicle and ``min_gap`` from those
 on the same lane; after 64 failed tries the first free spot of the region's 1 m grid is
-taken. Given the same generator state, both backends start from the same vehicles.
+taken. Given the same generator state, both backends start from the same vehicles: spots
+and headings come from :mod:`latentdrive.sim.fast.lanes`, whose arithmetic is highway-env's
+own, so they equal those of the reference backend's lanes bit for bit.
 
 Draws use the generator's scalar methods, which give the same values and leave the same
 state as ``ClippedGaussian.sample`` and ``Generator.choice`` on lists, at a fraction of
@@ -22,28 +24,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from latentdrive.scenarios.spec import ClippedGaussian, ScenarioError, ScenarioSpec, SpawnRegion
-from latentdrive.sim.fast.network import (
-    AMPLITUDE,
-    BASE_HEADING,
-    CDIR,
-    CENTER_X,
-    CENTER_Y,
-    CIRCULAR,
-    DIR_X,
-    DIR_Y,
-    EDGE_N_LANES,
-    KIND,
-    LAT_X,
-    LAT_Y,
-    PHASE,
-    PULSATION,
-    RADIUS,
-    SINE,
-    START_PHASE,
-    START_X,
-    START_Y,
-    Network,
-)
+from latentdrive.sim.fast.lanes import heading_at, position
+from latentdrive.sim.fast.network import EDGE_N_LANES, LENGTH, Network
 
 __all__ = ["CLEARANCE", "Placement", "PlacementPlan", "draw_clipped", "draw_index", "draw_uniform", "place_vehicles"]
 
@@ -109,35 +91,6 @@ def draw_uniform(lo: float, hi: float, rng: np.random.Generator) -> float:
     return lo + (hi - lo) * rng.random()
 
 
-class _Lanes:
-    """Lane geometry as Python floats: point and heading of one spot without numpy arrays,
-    with the same arithmetic (and numpy's trigonometry) as highway-env's lanes."""
-
-    def __init__(self, network: Network) -> None:
-        t = network.table
-        self.kind = t.ints[KIND].tolist()
-        self.geo = [t.geo[:, k].tolist() for k in range(network.n_lanes)]
-
-    def point(self, lane: int, s: float) -> tuple[float, float]:
-        g, kind = self.geo[lane], self.kind[lane]
-        if kind == CIRCULAR:
-            phi = g[CDIR] * s / g[RADIUS] + g[START_PHASE]
-            rho = g[RADIUS] - 0.0 * g[CDIR]
-            return float(g[CENTER_X] + rho * np.cos(phi)), float(g[CENTER_Y] + rho * np.sin(phi))
-        r = 0.0
-        if kind == SINE:
-            r = float(r + g[AMPLITUDE] * np.sin(g[PULSATION] * s + g[PHASE]))
-        return g[START_X] + s * g[DIR_X] + r * g[LAT_X], g[START_Y] + s * g[DIR_Y] + r * g[LAT_Y]
-
-    def heading(self, lane: int, s: float) -> float:
-        g, kind = self.geo[lane], self.kind[lane]
-        if kind == CIRCULAR:
-            return float(g[CDIR] * s / g[RADIUS] + g[START_PHASE] + np.pi / 2 * g[CDIR])
-        if kind == SINE:
-            return float(g[BASE_HEADING] + np.arctan(g[AMPLITUDE] * g[PULSATION] * np.cos(g[PULSATION] * s + g[PHASE])))
-        return float(g[BASE_HEADING])
-
-
 @dataclass(frozen=True)
 class _Region:
     spec: SpawnRegion
@@ -148,25 +101,32 @@ class PlacementPlan:
     """A scenario's spawn regions resolved against a layout, ready to place many episodes.
 
     Raises:
-        ScenarioError: a spawn edge or lane used by the scenario is not in the layout.
+        ScenarioError: a spawn region names an edge or a lane the layout does not have, or
+            its longitudinal window leaves the edge.
     """
 
     def __init__(self, spec: ScenarioSpec, network: Network) -> None:
         self.spec, self.network = spec, network
-        self._geometry = _Lanes(network)
         self._regions: dict[int, _Region] = {}
-        for regions, n in ((spec.av_spawn, spec.n_av), (spec.hv_spawn, spec.n_hv)):
-            for region in regions[: n]:
-                self._regions.setdefault(id(region), self._resolve(region))
+        for field in ("av_spawn", "hv_spawn"):
+            for i, region in enumerate(getattr(spec, field)):
+                self._regions.setdefault(id(region), self._resolve(region, f"scenario {spec.name!r}: {field}[{i}]"))
 
-    def _resolve(self, region: SpawnRegion) -> _Region:
+    def _resolve(self, region: SpawnRegion, where: str) -> _Region:
         edge = (region.edge[0], region.edge[1])
         if edge not in self.network.edge_keys:
-            raise ScenarioError(f"scenario {self.spec.name!r}: edge {region.edge} is not in the {self.spec.layout} layout")
+            raise ScenarioError(f"{where}: edge {region.edge} is not in the {self.spec.layout} layout")
         n_lanes = int(self.network.table.edges[EDGE_N_LANES, self.network.edge(edge)])
-        if max(region.lanes) >= n_lanes:
-            raise ScenarioError(f"scenario {self.spec.name!r}: edge {region.edge} has {n_lanes} lanes, spawn asks for lane {max(region.lanes)}")
-        return _Region(region, [self.network.lane((*edge, k)) for k in region.lanes])
+        if max(region.lanes) >= n_lanes or min(region.lanes) < 0:
+            raise ScenarioError(f"{where}: edge {region.edge} has lanes 0..{n_lanes - 1}, not {region.lanes}")
+        lanes = [self.network.lane((*edge, k)) for k in region.lanes]
+        g = region.longitudinal
+        length = min(float(self.network.table.geo[LENGTH, k]) for k in lanes)
+        if g.mean - g.clip < 0 or g.mean + g.clip > length:
+            raise ScenarioError(
+                f"{where}: longitudinal window [{g.mean - g.clip:g}, {g.mean + g.clip:g}] m "
+                f"leaves edge {region.edge} (length {length:g} m)")
+        return _Region(region, lanes)
 
     def place(self, rng: np.random.Generator) -> Placement:
         """Place the AVs then the HVs, drawing from ``rng``.
@@ -195,7 +155,7 @@ class PlacementPlan:
                 goals.append(frozenset({destination} if destination else spec.goal.nodes))
             placed.append((x, y, lane))
             for name, value in (("key", (*region_spec.edge, region_spec.lanes[k])), ("lane", lane), ("s", s),
-                                ("x", x), ("y", y), ("heading", self._geometry.heading(lane, s)),
+                                ("x", x), ("y", y), ("heading", heading_at(self.network.table, lane, s)),
                                 ("speed", speed), ("dest", destination), ("delta", delta),
                                 ("timer", timer), ("av", av)):
                 cols[name].append(value)
@@ -215,13 +175,13 @@ class PlacementPlan:
         for _attempt in range(64):
             k = draw_index(len(spec.lanes), rng)
             s = draw_clipped(spec.longitudinal, rng)
-            x, y = self._geometry.point(region.lanes[k], s)
+            x, y = position(self.network.table, region.lanes[k], s, 0.0)
             if self._is_free(x, y, region.lanes[k], placed):
                 return k, s, x, y
         g = spec.longitudinal
         for s_grid in np.arange(g.mean - g.clip, g.mean + g.clip + 1e-9, 1.0):
             for k, lane in enumerate(region.lanes):
-                x, y = self._geometry.point(lane, float(s_grid))
+                x, y = position(self.network.table, lane, float(s_grid), 0.0)
                 if self._is_free(x, y, lane, placed):
                     return k, float(s_grid), x, y
         raise ScenarioError(
@@ -242,7 +202,7 @@ def place_vehicles(spec: ScenarioSpec, network: Network, rng: np.random.Generato
     """Place the scenario's AVs then HVs, drawing from ``rng`` (see the module docstring).
 
     Raises:
-        ScenarioError: a spawn edge or lane is not in the layout, or a region is too full
-            to place another vehicle apart from the others.
+        ScenarioError: a spawn region does not fit the layout (:class:`PlacementPlan`), or
+            a region is too full to place another vehicle apart from the others.
     """
     return PlacementPlan(spec, network).place(rng)

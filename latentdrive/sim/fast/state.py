@@ -157,7 +157,8 @@ def write_template(st: State, row: int, spec: ScenarioSpec, network: Network) ->
     i[KIND, o] = OBSTACLE
     f[X, o], f[Y, o], f[HEADING, o] = obstacles[:, 0], obstacles[:, 1], obstacles[:, 2]
     f[VLENGTH, o], f[VWIDTH, o] = obstacles[:, 3], obstacles[:, 4]
-    lanes = np.arange(network.n_lanes)
-    for k, ob in enumerate(obstacles):
-        # Obstacles sit on their closest lane, as every highway-env road object does.
-        i[LANE, n_veh + k] = i[TARGET, n_veh + k] = int(np.argmin(distance_with_heading(network.table, lanes, ob[0], ob[1], ob[2])))
+    for k, (x, y, heading) in enumerate(obstacles[:, :3].tolist()):
+        # Obstacles sit on their closest lane (the first of equals), as every highway-env
+        # road object does.
+        closest = min(range(network.n_lanes), key=lambda lane: distance_with_heading(network.table, lane, x, y, heading))
+        i[LANE, n_veh + k] = i[TARGET, n_veh + k] = closest

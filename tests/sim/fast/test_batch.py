@@ -4,7 +4,7 @@ import pytest
 from latentdrive.scenarios import SCENARIOS, get_spec
 from latentdrive.scene import Kind, Scene
 from latentdrive.sim.fast import FastBackend, FastBatch
-from latentdrive.sim.highway import layout_raster
+from latentdrive.sim.roads import layout_raster
 
 
 def _script(seed, n_av, steps):

@@ -5,8 +5,8 @@ import pytest
 
 from latentdrive.scenarios import SCENARIOS, get_spec
 from latentdrive.sim.fast import FastBackend
-from latentdrive.sim.fast.validate import TOLERANCES, fidelity_table, format_fidelity
 from latentdrive.sim.highway import HighwayBackend
+from latentdrive.sim.validate import TOLERANCES, fidelity_table, format_fidelity
 
 SLOWER, IDLE, FASTER = 4, 1, 3
 

@@ -49,11 +49,18 @@ def test_placement_is_a_pure_function_of_the_generator():
     assert d.min() >= 6.0
 
 
-def test_unknown_edge_or_lane_is_a_scenario_error():
-    net = get_network("merge", 3)
-    region = {"edge": ["a", "zz"], "lanes": [0], "longitudinal": {"mean": 10.0}, "speed": {"mean": 20.0}}
-    with pytest.raises(ScenarioError, match="not in the merge layout"):
-        PlacementPlan(get_spec("merge", n_av=1, av_spawn=[region]), net)
-    region = {**region, "edge": ["j", "k"], "lanes": [1]}
-    with pytest.raises(ScenarioError, match="has 1 lanes"):
-        PlacementPlan(get_spec("merge", n_av=1, av_spawn=[region]), net)
+@pytest.mark.parametrize("backend", [HighwayBackend, FastBackend])
+@pytest.mark.parametrize(
+    ("region", "needle"),
+    [
+        ({"edge": ["a", "zz"]}, r"edge \('a', 'zz'\) is not in the merge layout"),
+        ({"lanes": [5]}, r"has lanes 0..1, not \[5\]"),
+        ({"lanes": [-1]}, r"has lanes 0..1, not \[-1\]"),
+        ({"longitudinal": {"mean": 220.0, "clip": 20.0}}, r"window \[200, 240\] m leaves edge"),
+    ],
+)
+def test_both_backends_name_a_bad_spawn_region(backend, region, needle):
+    base = get_spec("merge").av_spawn[0].model_dump()
+    with pytest.raises(ScenarioError, match=needle) as exc:
+        backend(get_spec("merge", av_spawn=[{**base, **region}]))
+    assert "av_spawn[0]" in str(exc.value)

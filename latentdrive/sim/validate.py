@@ -1,5 +1,8 @@
 """Fidelity and throughput of the fast backend against the highway-env reference.
 
+It runs both backends, so it lives above both: the fast backend itself never imports the
+reference it is measured against.
+
 Fidelity: per scenario and policy (uniformly random meta-actions, or always Idle), the
 same seeded episodes run on both backends (same placement, same action sequences), and
 four statistics are compared with 95% intervals: crash rate (episodes ending with an AV
@@ -40,7 +43,8 @@ from latentdrive.reward import episode_end
 from latentdrive.scenarios import SCENARIOS, get_spec
 from latentdrive.scenarios.spec import ScenarioSpec
 from latentdrive.scene import Scene
-from latentdrive.sim.fast.batch import FastBatch
+from latentdrive.sim.fast import FastBatch
+from latentdrive.sim.highway import HighwayBackend
 
 __all__ = [
     "TOLERANCES",
@@ -102,8 +106,6 @@ def _episode(spec: ScenarioSpec, scenes: list[Scene], changes: int) -> Episode:
 
 def rollout_highway(spec: ScenarioSpec, seeds: Sequence[int], policy: str) -> list[Episode]:
     """Episodes on the highway-env reference, one per seed."""
-    from latentdrive.sim.highway import HighwayBackend
-
     backend = HighwayBackend(spec)
     out = []
     for seed in seeds:
@@ -289,8 +291,6 @@ def measure_throughput(
     produce a Scene per environment per step (and, with ``velocity_maps``, a VelocityMap
     frame for every AV). The fast figure counts ``batch_size`` env steps per batch step.
     """
-    from latentdrive.sim.highway import HighwayBackend
-
     spec = get_spec(scenario)
     cfg = (obs_cfg or ObservationConfig()) if velocity_maps else None
     rng = np.random.default_rng(seed)

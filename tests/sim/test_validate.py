@@ -1,4 +1,4 @@
-from latentdrive.sim.fast.validate import format_throughput, measure_scaling, measure_throughput
+from latentdrive.sim.validate import format_throughput, measure_scaling, measure_throughput
 
 
 def test_throughput_helpers_run_and_report():
