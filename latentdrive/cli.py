@@ -10,11 +10,11 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 from latentdrive.config import ConfigError, LatentDriveError, parse_override_args
 from latentdrive.data.cli import add_collect_parser
 from latentdrive.experiments.policy_cli import add_policy_parsers
+from latentdrive.fileio import atomic_write_text
 
 __all__ = ["main"]
 
@@ -68,6 +68,10 @@ def _say(line: str) -> None:
     print(line, file=sys.stderr)
 
 
+def _write_json(path: str, rows: object) -> None:
+    atomic_write_text(path, json.dumps(rows, indent=1) + "\n")
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from latentdrive.config import ObservationConfig, validate
     from latentdrive.scenarios import SCENARIOS, get_spec
@@ -87,7 +91,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                                overrides=overrides, progress=_say)
         print(format_train_bench(trows, args.batch_size, int(overrides.get("threads", 1))))
         if args.json:
-            Path(args.json).write_text(json.dumps([r.as_dict() for r in trows], indent=1))
+            _write_json(args.json, [r.as_dict() for r in trows])
         return 0
     if args.plan:
         from latentdrive.evaluate.plan_bench import bench_planner, format_plan_bench
@@ -100,7 +104,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         prows = bench_planner(names, envs=args.batch_size, decisions=args.steps, cfg=pcfg, progress=_say)
         print(format_plan_bench(prows, pcfg))
         if args.json:
-            Path(args.json).write_text(json.dumps([r.as_dict() for r in prows], indent=1))
+            _write_json(args.json, [r.as_dict() for r in prows])
         return 0
     cfg = validate(ObservationConfig, parse_override_args(args.overrides), prefix="observation.")
     _say(f"benchmarking {len(names)} scenario(s) on the {args.backend} backend ...")
@@ -124,7 +128,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(format_table(hrows, cfg))
         dicts = [r.as_dict() for r in hrows]
     if args.json:
-        Path(args.json).write_text(json.dumps(dicts, indent=1))
+        _write_json(args.json, dicts)
     return 0
 
 
@@ -143,7 +147,7 @@ def _cmd_validate_backend(args: argparse.Namespace) -> int:
           "± is the half-width of the 95% interval")
     print(format_fidelity(rows))
     if args.json:
-        Path(args.json).write_text(json.dumps([r.as_dict() for r in rows], indent=1))
+        _write_json(args.json, [r.as_dict() for r in rows])
     bad = [r for r in rows if not r.ok]
     if bad:
         print(f"latentdrive: {len(bad)} statistic(s) outside tolerance", file=sys.stderr)

@@ -21,11 +21,8 @@ whole checkpoint matches them.
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
-import os
-import tempfile
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -37,15 +34,14 @@ from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 from torch import nn
 
-from latentdrive.config import LatentDriveError
+from latentdrive.errors import LatentDriveError
+from latentdrive.fileio import atomic_write_bytes
 
 __all__ = [
     "FORMAT",
     "VERSION",
     "CheckpointError",
     "CheckpointInfo",
-    "atomic_write_bytes",
-    "atomic_write_text",
     "load_checkpoint",
     "read_checkpoint",
     "save_checkpoint",
@@ -69,55 +65,6 @@ class CheckpointInfo:
     config: dict[str, Any]
     extra: dict[str, Any]
     extra_tensors: dict[str, torch.Tensor] = field(default_factory=dict)
-
-
-# ---------------------------------------------------------------------------------------
-# Atomic writes
-
-
-def _umask() -> int:
-    # The umask can only be read by setting it; set it straight back.
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file in the same directory and ``os.replace``.
-
-    Readers see the old file or the complete new one, never a partial write; the data is
-    fsynced before the rename so a crash cannot leave a renamed but empty file.
-    """
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-    try:
-        # mkstemp creates the file private (0600); give it the permissions a plain open()
-        # would, so that replacing a file does not change who may read it.
-        with contextlib.suppress(OSError):
-            os.chmod(tmp, 0o666 & ~_umask())
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    # Persist the rename itself; not every platform allows fsync on a directory.
-    with contextlib.suppress(OSError):
-        dfd = os.open(p.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    return p
-
-
-def atomic_write_text(path: str | Path, text: str) -> Path:
-    """:func:`atomic_write_bytes` for UTF-8 text."""
-    return atomic_write_bytes(path, text.encode("utf-8"))
 
 
 # ---------------------------------------------------------------------------------------

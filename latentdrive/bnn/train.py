@@ -40,7 +40,6 @@ from pydantic import Field, field_validator
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import (
     CheckpointError,
-    atomic_write_text,
     load_checkpoint,
     read_checkpoint,
     save_checkpoint,
@@ -49,6 +48,7 @@ from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
 from latentdrive.bnn.losses import LossKind, step_losses
 from latentdrive.bnn.prefetch import prefetch
 from latentdrive.config import Config, config_hash, validate
+from latentdrive.fileio import atomic_write_text
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.runlock import dir_lock
 from latentdrive.runtime import check_device, resolve_device, torch_settings

@@ -28,7 +28,6 @@ import torch.nn.functional as F
 from pydantic import Field, field_validator
 
 from latentdrive.bnn.batch import BNNBatch
-from latentdrive.bnn.checkpoint import atomic_write_text
 from latentdrive.bnn.distance import distance_matrix
 from latentdrive.bnn.evaluate import add_counts, evaluate_bnn, vehicle_counts_by_scenario
 from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
@@ -36,6 +35,7 @@ from latentdrive.bnn.vehicles import VehicleCounts
 from latentdrive.config import Config, ConfigError, load_yaml, merge_overrides, validate
 from latentdrive.data.collect import CollectConfig, collect
 from latentdrive.data.dataset import ShardDataset
+from latentdrive.fileio import atomic_write_text
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
 from latentdrive.runlock import dir_lock
 

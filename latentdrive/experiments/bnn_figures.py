@@ -4,6 +4,7 @@ latent_rep), plus the scenario distance matrices the paper names but never shows
 from __future__ import annotations
 
 import csv
+import io
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -15,6 +16,7 @@ import numpy as np
 import torch
 
 from latentdrive.bnn.train import load_trained_bottleneck
+from latentdrive.fileio import atomic_write_bytes
 from latentdrive.models.bottleneck import BottleneckNetwork
 from latentdrive.observe import CHANNELS
 
@@ -27,13 +29,11 @@ SHOWN = ("roundabout", "intersection")
 
 
 def _save(fig: plt.Figure, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=90, bbox_inches="tight")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     plt.close(fig)
-    tmp.replace(path)
-    return path
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 def _epoch_rows(run_dir: Path) -> list[dict[str, str]]:

@@ -7,7 +7,6 @@ model tensors include the encoder: a run is self-contained once trained.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -21,6 +20,7 @@ from latentdrive.actions import N_ACTIONS
 from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
 from latentdrive.bnn.train import load_trained_bottleneck
 from latentdrive.config import ConfigError, validate
+from latentdrive.fileio import read_json
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.models.vfan import QNetwork
 from latentdrive.rl.config import PolicyTrainConfig
@@ -148,12 +148,10 @@ def read_run_config(run_dir: str | Path) -> dict[str, Any]:
     """A policy run's config.json, or a one-line error when it is not a policy run."""
     path = Path(run_dir) / CONFIG
     try:
-        data = json.loads(path.read_text())
+        data = read_json(path, what="run config", error=ConfigError)
     except FileNotFoundError:
         raise ConfigError(f"{run_dir}: not a policy run (no {CONFIG})") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"{path}: unreadable ({str(exc).splitlines()[0]})") from None
-    if not isinstance(data, dict) or data.get("kind") != "policy" or "train" not in data:
+    if not isinstance(data, dict) or data.get("kind") != "policy" or not isinstance(data.get("train"), dict):
         raise ConfigError(f"{path}: not a policy run's config")
     return data
 

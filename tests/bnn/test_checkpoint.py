@@ -10,7 +10,7 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
-from latentdrive.bnn import checkpoint as ckpt_mod
+from latentdrive import fileio
 from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 
@@ -170,7 +170,7 @@ def test_writes_are_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> N
     def broken_replace(src: str, dst: str) -> None:
         raise OSError("disk full")
 
-    monkeypatch.setattr(ckpt_mod.os, "replace", broken_replace)
+    monkeypatch.setattr(fileio.os, "replace", broken_replace)
     _one_more_step(model, opt)
     with pytest.raises(OSError, match="disk full"):
         save_checkpoint(path, model, opt, step=4, epoch=2)
