@@ -14,7 +14,7 @@ from collections.abc import Sequence
 from latentdrive.config import ConfigError, LatentDriveError, parse_override_args
 from latentdrive.data.cli import add_collect_parser
 from latentdrive.experiments.policy_cli import add_policy_parsers
-from latentdrive.fileio import atomic_write_text
+from latentdrive.fileio import atomic_write_text, output_problem
 
 __all__ = ["main"]
 
@@ -42,6 +42,7 @@ def _cmd_show(args: argparse.Namespace) -> int:
     from latentdrive.env import make_env
     from latentdrive.viz import save_show_figure
 
+    _check_output("--out", args.out)
     overrides = parse_override_args(args.overrides)
     env = make_env(args.scenario, **overrides)
     if not 0 <= args.agent < env.spec_.n_av:
@@ -68,6 +69,13 @@ def _say(line: str) -> None:
     print(line, file=sys.stderr)
 
 
+def _check_output(flag: str, path: str) -> None:
+    """Refuse an output file that cannot be written before the work, not after it."""
+    problem = output_problem(path) if path else None
+    if problem:
+        raise LatentDriveError(f"{flag} {path}: cannot write a file there ({problem})")
+
+
 def _write_json(path: str, rows: object) -> None:
     atomic_write_text(path, json.dumps(rows, indent=1) + "\n")
 
@@ -81,6 +89,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         get_spec(name)  # unknown names fail before any work
     if args.steps < 1:
         raise LatentDriveError("--steps must be at least 1")
+    if args.batch_size < 1:
+        raise LatentDriveError(f"--batch-size must be at least 1, got {args.batch_size}")
+    _check_output("--json", args.json)
     if args.train:
         from latentdrive.rl.bench import bench_training, format_train_bench
 
@@ -97,8 +108,6 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         from latentdrive.evaluate.plan_bench import bench_planner, format_plan_bench
         from latentdrive.evaluate.planner import planner_config
 
-        if args.batch_size < 1:
-            raise LatentDriveError(f"--batch-size must be at least 1, got {args.batch_size}")
         pcfg = planner_config(parse_override_args(args.overrides))
         _say(f"benchmarking the planner on {', '.join(names)} ...")
         prows = bench_planner(names, envs=args.batch_size, decisions=args.steps, cfg=pcfg, progress=_say)
@@ -141,6 +150,7 @@ def _cmd_validate_backend(args: argparse.Namespace) -> int:
         get_spec(name)
     if args.episodes < 2:
         raise LatentDriveError("--episodes must be at least 2")
+    _check_output("--json", args.json)
     rows = fidelity_table(names, episodes=args.episodes, policies=tuple(args.policies.split(",")), seed=args.seed,
                           progress=_say)
     print(f"{args.episodes} seeded episodes per scenario and policy on both backends, same seeds and actions; "
@@ -167,6 +177,8 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
     clash = sorted(set(model) & set(own))
     if clash:
         raise ConfigError(f"model.{clash[0]} is set by {own[clash[0]]}, not --set")
+    if not 0.0 <= args.val_fraction < 1.0:
+        raise ConfigError(f"--val-fraction must be in [0, 1), got {args.val_fraction}")
     base = {"lambda_distance": args.lam, "seed": args.seed, "foreground_weight": args.foreground_weight}
     if args.epochs is not None:
         if args.epochs < 1:

@@ -64,7 +64,13 @@ def _format_validation_error(exc: ValidationError, prefix: str = "") -> str:
 
 
 def validate(model: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
-    """Build ``model`` from ``data``, turning validation failures into :class:`ConfigError`."""
+    """Build ``model`` from ``data``, turning validation failures into :class:`ConfigError`.
+
+    ``data`` usually comes from a file; anything but a mapping is a one-line error too.
+    """
+    if not isinstance(data, Mapping):
+        where = prefix.rstrip(".") or "config"
+        raise ConfigError(f"invalid config: {where}: expected a mapping, got {type(data).__name__}")
     try:
         return model.model_validate(dict(data))
     except ValidationError as exc:

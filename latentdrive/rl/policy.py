@@ -145,7 +145,12 @@ def greedy_policy(net: QNetwork, device: torch.device) -> Callable[[], Policy]:
 
 
 def read_run_config(run_dir: str | Path) -> dict[str, Any]:
-    """A policy run's config.json, or a one-line error when it is not a policy run."""
+    """A policy run's config.json, or a one-line error when it is not a policy run.
+
+    Its ``train`` section is validated (and completed with the defaults of fields it
+    predates), so callers may index it without meeting a hand-edited or damaged file's
+    missing keys.
+    """
     path = Path(run_dir) / CONFIG
     try:
         data = read_json(path, what="run config", error=ConfigError)
@@ -153,7 +158,11 @@ def read_run_config(run_dir: str | Path) -> dict[str, Any]:
         raise ConfigError(f"{run_dir}: not a policy run (no {CONFIG})") from None
     if not isinstance(data, dict) or data.get("kind") != "policy" or not isinstance(data.get("train"), dict):
         raise ConfigError(f"{path}: not a policy run's config")
-    return data
+    try:
+        train = validate(PolicyTrainConfig, data["train"])
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    return {**data, "train": train.model_dump(mode="json")}
 
 
 def load_policy_network(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple[QNetwork, PolicyTrainConfig]:
