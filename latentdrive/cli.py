@@ -10,11 +10,11 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
-from pathlib import Path
 
 from latentdrive.config import ConfigError, LatentDriveError, parse_override_args
 from latentdrive.data.cli import add_collect_parser
 from latentdrive.experiments.policy_cli import add_policy_parsers
+from latentdrive.fileio import atomic_write_text, output_problem
 
 __all__ = ["main"]
 
@@ -50,6 +50,7 @@ def _cmd_show(args: argparse.Namespace) -> int:
     from latentdrive.env import make_env
     from latentdrive.viz import save_show_figure
 
+    _check_output("--out", args.out)
     overrides = parse_override_args(args.overrides)
     env = make_env(args.scenario, **overrides)
     if not 0 <= args.agent < env.spec_.n_av:
@@ -76,6 +77,17 @@ def _say(line: str) -> None:
     print(line, file=sys.stderr)
 
 
+def _check_output(flag: str, path: str) -> None:
+    """Refuse an output file that cannot be written before the work, not after it."""
+    problem = output_problem(path) if path else None
+    if problem:
+        raise LatentDriveError(f"{flag} {path}: cannot write a file there ({problem})")
+
+
+def _write_json(path: str, rows: object) -> None:
+    atomic_write_text(path, json.dumps(rows, indent=1) + "\n")
+
+
 def _cmd_bench(args: argparse.Namespace) -> int:
     from latentdrive.config import ObservationConfig, validate
     from latentdrive.scenarios import SCENARIOS, get_spec
@@ -87,6 +99,9 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise LatentDriveError("--steps must be at least 1")
     if args.train and args.plan:
         raise LatentDriveError("--plan and --train measure different things: give one")
+    if args.batch_size < 1:
+        raise LatentDriveError(f"--batch-size must be at least 1, got {args.batch_size}")
+    _check_output("--json", args.json)
     if args.train:
         from latentdrive.rl.bench import bench_training, format_train_bench
 
@@ -97,20 +112,18 @@ def _cmd_bench(args: argparse.Namespace) -> int:
                                overrides=overrides, progress=_say)
         print(format_train_bench(trows, args.batch_size, int(overrides.get("threads", 1))))
         if args.json:
-            Path(args.json).write_text(json.dumps([r.as_dict() for r in trows], indent=1))
+            _write_json(args.json, [r.as_dict() for r in trows])
         return 0
     if args.plan:
         from latentdrive.evaluate.plan_bench import bench_planner, format_plan_bench
         from latentdrive.evaluate.planner import planner_config_from_args
 
-        if args.batch_size < 1:
-            raise LatentDriveError(f"--batch-size must be at least 1, got {args.batch_size}")
         pcfg = planner_config_from_args(args.overrides)
         _say(f"benchmarking the planner on {', '.join(names)} ...")
         prows = bench_planner(names, envs=args.batch_size, decisions=args.steps, cfg=pcfg, progress=_say)
         print(format_plan_bench(prows, pcfg))
         if args.json:
-            Path(args.json).write_text(json.dumps([r.as_dict() for r in prows], indent=1))
+            _write_json(args.json, [r.as_dict() for r in prows])
         return 0
     cfg = validate(ObservationConfig, parse_override_args(args.overrides), prefix="observation.")
     _say(f"benchmarking {len(names)} scenario(s) on the {args.backend} backend ...")
@@ -134,7 +147,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         print(format_table(hrows, cfg))
         dicts = [r.as_dict() for r in hrows]
     if args.json:
-        Path(args.json).write_text(json.dumps(dicts, indent=1))
+        _write_json(args.json, dicts)
     return 0
 
 
@@ -147,13 +160,14 @@ def _cmd_validate_backend(args: argparse.Namespace) -> int:
         get_spec(name)
     if args.episodes < 2:
         raise LatentDriveError("--episodes must be at least 2")
+    _check_output("--json", args.json)
     rows = fidelity_table(names, episodes=args.episodes, policies=tuple(args.policies.split(",")), seed=args.seed,
                           progress=_say)
     print(f"{args.episodes} seeded episodes per scenario and policy on both backends, same seeds and actions; "
           "± is the half-width of the 95% interval")
     print(format_fidelity(rows))
     if args.json:
-        Path(args.json).write_text(json.dumps([r.as_dict() for r in rows], indent=1))
+        _write_json(args.json, [r.as_dict() for r in rows])
     bad = [r for r in rows if not r.ok]
     if bad:
         print(f"latentdrive: {len(bad)} statistic(s) outside tolerance", file=sys.stderr)
@@ -173,6 +187,8 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
     clash = sorted(set(model) & set(own))
     if clash:
         raise ConfigError(f"model.{clash[0]} is set by {own[clash[0]]}, not --set")
+    if not 0.0 <= args.val_fraction < 1.0:
+        raise ConfigError(f"--val-fraction must be in [0, 1), got {args.val_fraction}")
     base = {"lambda_distance": args.lam, "seed": args.seed, "foreground_weight": args.foreground_weight}
     if args.epochs is not None:
         if args.epochs < 1:

@@ -18,6 +18,9 @@ from typing import Any, TypeVar
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from latentdrive.errors import LatentDriveError
+from latentdrive.fileio import MAX_CONFIG_BYTES, read_text
+
 __all__ = [
     "Config",
     "ConfigError",
@@ -32,13 +35,6 @@ __all__ = [
 ]
 
 C = TypeVar("C", bound="Config")
-
-
-class LatentDriveError(Exception):
-    """An error caused by the user's input, with a one-line message that names the problem.
-
-    The CLI prints these without a traceback and exits non-zero.
-    """
 
 
 class ConfigError(LatentDriveError, ValueError):
@@ -68,7 +64,13 @@ def _format_validation_error(exc: ValidationError, prefix: str = "") -> str:
 
 
 def validate(model: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
-    """Build ``model`` from ``data``, turning validation failures into :class:`ConfigError`."""
+    """Build ``model`` from ``data``, turning validation failures into :class:`ConfigError`.
+
+    ``data`` usually comes from a file; anything but a mapping is a one-line error too.
+    """
+    if not isinstance(data, Mapping):
+        where = prefix.rstrip(".") or "config"
+        raise ConfigError(f"invalid config: {where}: expected a mapping, got {type(data).__name__}")
     try:
         return model.model_validate(dict(data))
     except ValidationError as exc:
@@ -102,20 +104,28 @@ def parse_override_args(items: list[str]) -> dict[str, Any]:
             raise ConfigError(f"invalid override {item!r}: expected key=value")
         try:
             out[key.strip()] = yaml.safe_load(raw)
-        except yaml.YAMLError:
+        except (yaml.YAMLError, RecursionError):
             raise ConfigError(f"invalid override {item!r}: value is not valid YAML") from None
     return out
 
 
 def load_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping, with a one-line error naming the file when it is not one."""
+    """Read a YAML mapping, with a one-line error naming the file when it is not one.
+
+    The file is read with a size bound (:data:`~latentdrive.fileio.MAX_CONFIG_BYTES`); a
+    folder, a binary file or YAML nested beyond the parser's limits is refused the same way.
+    """
     p = Path(path)
     try:
-        data = yaml.safe_load(p.read_text())
+        text = read_text(p, limit=MAX_CONFIG_BYTES, what="config file", error=ConfigError)
     except FileNotFoundError:
         raise ConfigError(f"{p}: no such config file") from None
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise ConfigError(f"{p}: malformed YAML ({str(exc).splitlines()[0]})") from None
+    except RecursionError:
+        raise ConfigError(f"{p}: malformed YAML (nested too deeply)") from None
     if data is None:
         return {}
     if not isinstance(data, dict):

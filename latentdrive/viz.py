@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import io
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -14,6 +15,7 @@ from matplotlib.axes import Axes
 from matplotlib.patches import Polygon
 
 from latentdrive.config import ObservationConfig
+from latentdrive.fileio import atomic_write_bytes
 from latentdrive.observe import CHANNELS
 from latentdrive.scene import Kind, Scene
 
@@ -97,10 +99,7 @@ def save_show_figure(
     axes[0, 0].set_title("scene (red: observing AV, green: AVs, blue: HVs)", fontsize=9)
     fig.suptitle(title)
     fig.tight_layout()
-    out = Path(path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp.png")
-    fig.savefig(tmp, dpi=80)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=80)
     plt.close(fig)
-    tmp.replace(out)
-    return out
+    return atomic_write_bytes(path, buf.getvalue())

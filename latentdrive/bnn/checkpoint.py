@@ -7,26 +7,28 @@ One file holds everything needed to continue a run exactly where it stopped:
   (e.g. Adam's ``exp_avg``, ``exp_avg_sq``, ``step``);
 - tensor ``rng/torch``: a ``torch.Generator`` state (uint8), when one is given;
 - tensors ``extra/<name>``: caller tensors (e.g. CUDA generator states);
-- header metadata (strings): ``format``, ``version``, ``digest`` (SHA-256 over every
-  tensor's name, dtype, shape and bytes, which catches corruption the safetensors header
-  check cannot see) and ``state``, a JSON document with the step, the epoch, the caller's
-  config, the optimizer's class, param groups and non-tensor per-parameter state, the
-  numpy ``Generator.bit_generator.state`` and caller ``extra`` values.
+- header metadata (strings): ``format``, ``version``, ``state``, a JSON document with the
+  step, the epoch, the caller's config, the optimizer's class, param groups and
+  non-tensor per-parameter state, the numpy ``Generator.bit_generator.state`` and caller
+  ``extra`` values; and ``digest``, a SHA-256 over every tensor's name, dtype, shape and
+  bytes and over the ``state`` text, which catches corruption the safetensors header
+  check cannot see, in the tensors and in the state alike. (Version 1 files, whose digest
+  covers the tensors only, are still read.)
 
-Any failure to read a checkpoint, a foreign or corrupt file, or one made for another
-architecture raises :class:`CheckpointError`, a ``ValueError`` with a one-line message
-that starts with the file's path. Nothing is loaded into the model or optimizer unless the
-whole checkpoint matches them.
+The file is read without unpickling anything (safetensors holds raw tensor bytes), and
+its header is checked before the rest of the file is read. Any failure to read a
+checkpoint, a foreign or corrupt file, or one made for another architecture raises
+:class:`CheckpointError`, a ``ValueError`` with a one-line message that starts with the
+file's path. Nothing is loaded into the model or optimizer unless the whole checkpoint
+matches them.
 """
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import os
-import tempfile
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -37,22 +39,26 @@ from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 from torch import nn
 
-from latentdrive.config import LatentDriveError
+from latentdrive.errors import LatentDriveError
+from latentdrive.fileio import atomic_write_bytes
 
 __all__ = [
     "FORMAT",
     "VERSION",
     "CheckpointError",
     "CheckpointInfo",
-    "atomic_write_bytes",
-    "atomic_write_text",
     "load_checkpoint",
     "read_checkpoint",
     "save_checkpoint",
 ]
 
 FORMAT = "latentdrive.checkpoint"
-VERSION = 1
+#: Written by this version; 2 added the state JSON to the digest.
+VERSION = 2
+#: Versions read: 1's digest covers the tensors only.
+_READABLE = ("1", "2")
+#: Largest safetensors header read, the limit of the safetensors library itself (bytes).
+MAX_HEADER_BYTES = 100_000_000
 
 
 class CheckpointError(LatentDriveError, ValueError):
@@ -69,55 +75,6 @@ class CheckpointInfo:
     config: dict[str, Any]
     extra: dict[str, Any]
     extra_tensors: dict[str, torch.Tensor] = field(default_factory=dict)
-
-
-# ---------------------------------------------------------------------------------------
-# Atomic writes
-
-
-def _umask() -> int:
-    # The umask can only be read by setting it; set it straight back.
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
-    """Write ``data`` to ``path`` via a temporary file in the same directory and ``os.replace``.
-
-    Readers see the old file or the complete new one, never a partial write; the data is
-    fsynced before the rename so a crash cannot leave a renamed but empty file.
-    """
-    p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=p.parent, prefix=f".{p.name}.", suffix=".tmp")
-    try:
-        # mkstemp creates the file private (0600); give it the permissions a plain open()
-        # would, so that replacing a file does not change who may read it.
-        with contextlib.suppress(OSError):
-            os.chmod(tmp, 0o666 & ~_umask())
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, p)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(tmp)
-        raise
-    # Persist the rename itself; not every platform allows fsync on a directory.
-    with contextlib.suppress(OSError):
-        dfd = os.open(p.parent, os.O_RDONLY)
-        try:
-            os.fsync(dfd)
-        finally:
-            os.close(dfd)
-    return p
-
-
-def atomic_write_text(path: str | Path, text: str) -> Path:
-    """:func:`atomic_write_bytes` for UTF-8 text."""
-    return atomic_write_bytes(path, text.encode("utf-8"))
 
 
 # ---------------------------------------------------------------------------------------
@@ -149,12 +106,19 @@ def _from_json(obj: Any) -> Any:
     return obj
 
 
-def _digest(tensors: Mapping[str, torch.Tensor]) -> str:
+def _digest(tensors: Mapping[str, torch.Tensor], state: str | None) -> str:
+    """SHA-256 of the tensors (names, dtypes, shapes, bytes) and the state JSON text.
+
+    ``state=None`` gives version 1's digest, over the tensors only.
+    """
     h = hashlib.sha256()
     for name in sorted(tensors):
         t = tensors[name]
         h.update(f"{name}|{t.dtype}|{tuple(t.shape)}|".encode())
         h.update(t.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    if state is not None:
+        # After every tensor's bytes, behind a tag no tensor name can produce.
+        h.update(b"\x00state|" + state.encode("utf-8"))
     return h.hexdigest()
 
 
@@ -222,11 +186,12 @@ def save_checkpoint(
         ),
         "extra": _to_json(dict(extra or {})),
     }
+    state_text = json.dumps(state, sort_keys=True)
     metadata = {
         "format": FORMAT,
         "version": str(VERSION),
-        "digest": _digest(tensors),
-        "state": json.dumps(state, sort_keys=True),
+        "digest": _digest(tensors, state_text),
+        "state": state_text,
     }
     return atomic_write_bytes(path, st_save(tensors, metadata=metadata))
 
@@ -246,37 +211,53 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str
         return CheckpointError(f"{p}: {reason}")
 
     try:
-        data = p.read_bytes()
+        with open(p, "rb") as f:
+            # The safetensors layout: 8-byte little-endian header length, JSON header,
+            # tensor data. The header is checked before the (possibly large) rest is read.
+            size = os.fstat(f.fileno()).st_size
+            head = f.read(8)
+            if len(head) < 8:
+                raise fail("not a safetensors file (too short)")
+            n = int.from_bytes(head, "little")
+            if n > min(size - 8, MAX_HEADER_BYTES):
+                raise fail("not a safetensors file (bad header length; truncated or foreign file)")
+            header_bytes = f.read(n)
+            meta = _metadata(header_bytes, fail)
+            data = head + header_bytes + f.read()
     except OSError as exc:
         raise fail(f"cannot read checkpoint ({exc.strerror or _one_line(exc)})") from None
-    # The safetensors layout: 8-byte little-endian header length, JSON header, tensor data.
-    if len(data) < 8:
-        raise fail("not a safetensors file (too short)")
-    n = int.from_bytes(data[:8], "little")
-    if n > len(data) - 8:
-        raise fail("not a safetensors file (bad header length; truncated or foreign file)")
-    try:
-        header = json.loads(data[8 : 8 + n])
-    except (UnicodeDecodeError, json.JSONDecodeError):
-        raise fail("not a safetensors file (unreadable header)") from None
-    meta = header.get("__metadata__") if isinstance(header, dict) else None
-    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-        raise fail("not a latentdrive checkpoint (missing format metadata)")
-    if meta.get("version") != str(VERSION):
-        raise fail(f"checkpoint format version {meta.get('version')!r}, expected {VERSION}")
     try:
         tensors = st_load(data)
     except Exception as exc:  # the safetensors parser raises its own error types
         raise fail(f"corrupt checkpoint ({_one_line(exc)})") from None
-    if _digest(tensors) != meta.get("digest"):
+    state_text = meta.get("state")
+    if not isinstance(state_text, str):
+        raise fail("corrupt checkpoint (no state metadata)")
+    covered = None if meta["version"] == "1" else state_text
+    if _digest(tensors, covered) != meta.get("digest"):
         raise fail("corrupt checkpoint (checksum mismatch)")
     try:
-        state = json.loads(meta["state"])
+        state = json.loads(state_text)
         int(state["step"])
         int(state["epoch"])
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, RecursionError):
         raise fail("corrupt checkpoint (unreadable state metadata)") from None
     return tensors, state
+
+
+def _metadata(header: bytes, fail: Callable[[str], CheckpointError]) -> dict[str, Any]:
+    """The ``__metadata__`` of a safetensors header, when it is a latentdrive checkpoint's."""
+    try:
+        parsed = json.loads(header)
+    except (UnicodeDecodeError, ValueError, RecursionError):
+        raise fail("not a safetensors file (unreadable header)") from None
+    meta = parsed.get("__metadata__") if isinstance(parsed, dict) else None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        raise fail("not a latentdrive checkpoint (missing format metadata)")
+    if meta.get("version") not in _READABLE:
+        raise fail(f"checkpoint format version {meta.get('version')!r}, this latentdrive reads "
+                   f"{', '.join(_READABLE)}")
+    return meta
 
 
 def _describe_mismatch(
@@ -295,6 +276,46 @@ def _describe_mismatch(
             parts.append(f"{name} has shape {a} in the file but {b} in the model")
             break
     return "; ".join(parts)
+
+
+def _optimizer_state(state: Mapping[str, Any], tensors: Mapping[str, torch.Tensor],
+                     optimizer: torch.optim.Optimizer,
+                     fail: Callable[[str], CheckpointError]) -> dict[str, Any]:
+    """The optimizer ``state_dict`` a checkpoint holds, checked against ``optimizer``."""
+    oj = state.get("optimizer")
+    if not oj:
+        raise fail("checkpoint holds no optimizer state")
+    if oj.get("class") != type(optimizer).__name__:
+        have, want = type(optimizer).__name__, oj.get("class")
+        raise fail(f"optimizer is {have} but the checkpoint holds {want}")
+    groups = oj["param_groups"]
+    own = optimizer.param_groups
+    if len(groups) != len(own) or any(
+        len(g["params"]) != len(o["params"]) for g, o in zip(groups, own, strict=False)
+    ):
+        raise fail("optimizer parameter groups differ from the checkpoint's")
+    # Map the file's parameter ids onto the live parameters to check state shapes.
+    params = [q for g in own for q in g["params"]]
+    ids = [i for g in groups for i in g["params"]]
+    by_id = dict(zip(ids, params, strict=True))
+    opt_state: dict[int, dict[str, Any]] = {}
+    for pid in oj["state_ids"]:
+        opt_state[int(pid)] = dict(_from_json(oj["scalar_state"].get(str(pid), {})))
+    for name, t in tensors.items():
+        if not name.startswith("optim/"):
+            continue
+        _, pid_s, key = name.split("/", 2)
+        pid = int(pid_s)
+        if pid not in opt_state or pid not in by_id:
+            raise fail(f"optimizer state for unknown parameter {pid}")
+        q = by_id[pid]
+        if t.ndim > 0 and tuple(t.shape) != tuple(q.shape):
+            raise fail(
+                f"optimizer state {key} of parameter {pid} has shape {tuple(t.shape)} "
+                f"but the parameter has {tuple(q.shape)}"
+            )
+        opt_state[pid][key] = t
+    return {"state": opt_state, "param_groups": _from_json(groups)}
 
 
 def load_checkpoint(
@@ -327,40 +348,12 @@ def load_checkpoint(
 
     optim_sd: dict[str, Any] | None = None
     if optimizer is not None:
-        oj = state.get("optimizer")
-        if not oj:
-            raise fail("checkpoint holds no optimizer state")
-        if oj.get("class") != type(optimizer).__name__:
-            have, want = type(optimizer).__name__, oj.get("class")
-            raise fail(f"optimizer is {have} but the checkpoint holds {want}")
-        groups = oj["param_groups"]
-        own = optimizer.param_groups
-        if len(groups) != len(own) or any(
-            len(g["params"]) != len(o["params"]) for g, o in zip(groups, own, strict=False)
-        ):
-            raise fail("optimizer parameter groups differ from the checkpoint's")
-        # Map the file's parameter ids onto the live parameters to check state shapes.
-        params = [q for g in own for q in g["params"]]
-        ids = [i for g in groups for i in g["params"]]
-        by_id = dict(zip(ids, params, strict=True))
-        opt_state: dict[int, dict[str, Any]] = {}
-        for pid in oj["state_ids"]:
-            opt_state[int(pid)] = dict(_from_json(oj["scalar_state"].get(str(pid), {})))
-        for name, t in tensors.items():
-            if not name.startswith("optim/"):
-                continue
-            _, pid_s, key = name.split("/", 2)
-            pid = int(pid_s)
-            if pid not in opt_state or pid not in by_id:
-                raise fail(f"optimizer state for unknown parameter {pid}")
-            q = by_id[pid]
-            if t.ndim > 0 and tuple(t.shape) != tuple(q.shape):
-                raise fail(
-                    f"optimizer state {key} of parameter {pid} has shape {tuple(t.shape)} "
-                    f"but the parameter has {tuple(q.shape)}"
-                )
-            opt_state[pid][key] = t
-        optim_sd = {"state": opt_state, "param_groups": _from_json(groups)}
+        try:
+            optim_sd = _optimizer_state(state, tensors, optimizer, fail)
+        except (KeyError, TypeError, ValueError, AttributeError) as exc:
+            if isinstance(exc, CheckpointError):
+                raise
+            raise fail(f"corrupt checkpoint (unreadable optimizer state: {_one_line(exc)})") from None
 
     if torch_generator is not None and "rng/torch" not in tensors:
         raise fail("checkpoint holds no torch generator state")

@@ -40,7 +40,6 @@ from pydantic import Field, field_validator
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import (
     CheckpointError,
-    atomic_write_text,
     load_checkpoint,
     read_checkpoint,
     save_checkpoint,
@@ -49,6 +48,7 @@ from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
 from latentdrive.bnn.losses import LossKind, step_losses
 from latentdrive.bnn.prefetch import prefetch
 from latentdrive.config import Config, config_hash, validate
+from latentdrive.fileio import atomic_write_text
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.runlock import dir_lock
 from latentdrive.runtime import check_device, resolve_device, torch_settings
@@ -58,6 +58,7 @@ __all__ = [
     "CONFIG_NAME",
     "METRICS_NAME",
     "BNNTrainConfig",
+    "check_run_dir",
     "load_trained_bottleneck",
     "train_bnn",
 ]
@@ -303,6 +304,28 @@ def _check_resumable(
         )
 
 
+def check_run_dir(run_dir: str | Path, cfg: BNNTrainConfig, model_cfg: BottleneckConfig,
+                  resume: bool) -> None:
+    """Raise what :func:`train_bnn` would refuse in ``run_dir``, writing nothing.
+
+    A run directory holding a checkpoint is refused without ``resume``, and with it when
+    the checkpoint is unreadable or was made with another model config or other training
+    settings (see :func:`train_bnn`). Callers that write files of their own into the run
+    directory check first, so that a refused run leaves them as they were.
+    """
+    ckpt = Path(run_dir) / CHECKPOINT_NAME
+    if not ckpt.exists():
+        return
+    if not resume:
+        raise CheckpointError(
+            f"{ckpt} exists: resume it (resume=True, --resume) or choose a new run directory"
+        )
+    saved = read_checkpoint(ckpt)[1].get("config")
+    if not isinstance(saved, dict):
+        raise CheckpointError(f"{ckpt}: not a BNN checkpoint (no saved configs)")
+    _check_resumable(ckpt, saved, cfg, model_cfg)
+
+
 # ---------------------------------------------------------------------------------------
 # Training
 
@@ -353,10 +376,7 @@ def _train(
     progress: bool,
 ) -> dict[str, float]:
     ckpt = run / CHECKPOINT_NAME
-    if ckpt.exists() and not resume:
-        raise CheckpointError(
-            f"{ckpt} exists: resume it (resume=True, --resume) or choose a new run directory"
-        )
+    check_run_dir(run, cfg, model_cfg, resume)
     device = resolve_device(cfg.device)
     say: Callable[[str], None] = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
 
@@ -372,8 +392,6 @@ def _train(
         last: dict[str, float] = {}
         resumed = False
         if resume and ckpt.exists():
-            saved = read_checkpoint(ckpt)[1]["config"]
-            _check_resumable(ckpt, saved, cfg, model_cfg)
             info = load_checkpoint(
                 ckpt, model, optimizer,
                 torch_generator=torch.default_generator, numpy_generator=np_rng,
@@ -513,7 +531,7 @@ def load_trained_bottleneck(
         raise CheckpointError(f"{ckpt}: no checkpoint in {run_dir}")
     try:
         model_cfg = validate(BottleneckConfig, saved["model"])
-    except (KeyError, ValueError) as exc:
+    except (KeyError, TypeError, ValueError) as exc:
         raise CheckpointError(f"{ckpt}: unusable model config ({exc})") from None
     model = BottleneckNetwork(model_cfg)
     load_checkpoint(ckpt, model)

@@ -40,13 +40,13 @@ from latentdrive.data.shards import (
     QUANT_MAX_ERROR,
     DatasetError,
     array_digest,
-    is_temp_file,
     quantize,
     read_manifest,
     write_manifest,
     write_shard,
 )
 from latentdrive.env import EnvConfig, make_env_config
+from latentdrive.fileio import confined, is_temp_file
 from latentdrive.rollout import rollout, scene_policy
 from latentdrive.runlock import LOCK_NAME, dir_lock
 from latentdrive.scenarios import SCENARIOS
@@ -57,6 +57,7 @@ __all__ = [
     "CollectSummary",
     "DatasetError",
     "WorkUnit",
+    "check_collect_target",
     "collect",
     "dataset_hash",
     "episode_seeds",
@@ -334,32 +335,57 @@ def _file_sha256(path: Path) -> str | None:
     return h.hexdigest()
 
 
-def _open_dataset_dir(root: Path, fresh: dict[str, Any], say: Callable[[str], None]) -> dict[str, Any]:
-    """The manifest to continue from: a new one, or the existing one with unverifiable shards dropped."""
+def _existing_manifest(root: Path, fresh: dict[str, Any]) -> dict[str, Any] | None:
+    """The manifest of the dataset in ``root`` that ``fresh``'s collection would continue
+    (None when there is none yet), checked without writing anything."""
     if root.exists() and not root.is_dir():
         raise DatasetError(f"{root}: exists and is not a directory")
     if not (root / MANIFEST).exists():
         if root.exists() and any(not is_temp_file(p) and p.name != LOCK_NAME for p in root.iterdir()):
             raise DatasetError(f"{root}: directory is not empty and holds no {MANIFEST}; collect into an empty or new directory")
+        return None
+    manifest = read_manifest(root)
+    if manifest["config_hash"] != fresh["config_hash"]:
+        raise DatasetError(
+            f"{root}: holds a dataset of config {manifest['config_hash']}, not this config's "
+            f"{fresh['config_hash']}; rerun with the same settings to resume, or use another directory")
+    for key in ("scenarios", "env_configs", "sample_shape", "units"):
+        if manifest[key] != fresh[key]:
+            raise DatasetError(
+                f"{root}: the same config now resolves to different {key} than when the "
+                "dataset was collected (scenario presets changed?); use another directory")
+    return manifest
+
+
+def _fresh_manifest(cfg: CollectConfig) -> dict[str, Any]:
+    env_cfgs = resolve_env_configs(cfg)
+    return _new_manifest(cfg, dataset_hash(cfg), env_cfgs, plan_units(cfg, env_cfgs))
+
+
+def check_collect_target(cfg: CollectConfig, out_dir: str | Path) -> None:
+    """Raise what :func:`collect` of ``cfg`` into ``out_dir`` would refuse, writing nothing.
+
+    For commands that write files of their own beside the dataset: they check first, so
+    that a refused dataset leaves everything as it was.
+    """
+    _existing_manifest(Path(out_dir), _fresh_manifest(cfg))
+
+
+def _open_dataset_dir(root: Path, fresh: dict[str, Any], say: Callable[[str], None]) -> dict[str, Any]:
+    """The manifest to continue from: a new one, or the existing one with unverifiable shards dropped."""
+    existing = _existing_manifest(root, fresh)
+    if existing is None:
         root.mkdir(parents=True, exist_ok=True)
         manifest = fresh
     else:
-        manifest = read_manifest(root)
-        if manifest["config_hash"] != fresh["config_hash"]:
-            raise DatasetError(
-                f"{root}: holds a dataset of config {manifest['config_hash']}, not this config's "
-                f"{fresh['config_hash']}; rerun with the same settings to resume, or use another directory")
-        for key in ("scenarios", "env_configs", "sample_shape", "units"):
-            if manifest[key] != fresh[key]:
-                raise DatasetError(
-                    f"{root}: the same config now resolves to different {key} than when the "
-                    "dataset was collected (scenario presets changed?); use another directory")
+        manifest = existing
         kept = {}
         for name, entry in manifest["shards"].items():
-            if _file_sha256(root / name) == entry["sha256"]:
+            path = confined(root, name, source=root / MANIFEST, error=DatasetError)
+            if _file_sha256(path) == entry["sha256"]:
                 kept[name] = entry
             else:
-                say(f"{root / name}: missing or changed since it was recorded; collecting it again")
+                say(f"{path}: missing or changed since it was recorded; collecting it again")
         manifest["shards"] = kept
     for p in root.iterdir():
         if is_temp_file(p):  # left by an interrupted write; its shard is redone
@@ -391,11 +417,12 @@ def collect(cfg: CollectConfig, out_dir: str | Path, progress: bool = True) -> C
     env_cfgs = resolve_env_configs(cfg)
     units = plan_units(cfg, env_cfgs)
     chash = dataset_hash(cfg)
+    fresh = _new_manifest(cfg, chash, env_cfgs, units)
     if root.exists() and not root.is_dir():
         raise DatasetError(f"{root}: exists and is not a directory")
     # Held until the manifest's last update: a second collect into `root` is refused.
     with dir_lock(root, "collect"):
-        manifest = _open_dataset_dir(root, _new_manifest(cfg, chash, env_cfgs, units), say)
+        manifest = _open_dataset_dir(root, fresh, say)
         todo = [u for u in units if u.name not in manifest["shards"]]
         skipped = len(units) - len(todo)
         if skipped:

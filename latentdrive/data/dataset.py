@@ -21,7 +21,8 @@ import torch
 from numpy.typing import NDArray
 
 from latentdrive.bnn.batch import BNNBatch
-from latentdrive.data.shards import DatasetError, read_manifest, read_shard
+from latentdrive.data.shards import MANIFEST, DatasetError, read_manifest, read_shard
+from latentdrive.fileio import confined
 
 __all__ = ["DatasetError", "ShardDataset"]
 
@@ -37,6 +38,7 @@ class _Shard:
     episode_samples: IntArray  # (episodes,) samples of each episode, in episode order
     samples: int
     sha256: str
+    size: int  # bytes, as recorded in the manifest
 
     @property
     def episode_ids(self) -> IntArray:
@@ -78,7 +80,7 @@ class ShardDataset:
             entry = done.get(u["name"])
             if entry is None:
                 continue
-            path = self.root / u["name"]
+            path = confined(self.root, u["name"], source=self.root / MANIFEST, error=DatasetError)
             try:
                 size = path.stat().st_size
             except FileNotFoundError:
@@ -89,7 +91,7 @@ class ShardDataset:
                 name=u["name"], path=path, scenario=int(u["scenario"]),
                 first_episode=int(u["first_episode"]),
                 episode_samples=np.asarray(entry["episode_samples"], dtype=np.int64),
-                samples=int(entry["samples"]), sha256=str(entry["sha256"])))
+                samples=int(entry["samples"]), sha256=str(entry["sha256"]), size=int(entry["bytes"])))
         self._episode_scenario: dict[int, int] = {}
         for sh in self._shards:
             for ep in sh.episode_ids.tolist():
@@ -163,7 +165,7 @@ class ShardDataset:
 
     def _load(self, s: _Shard) -> dict[str, np.ndarray]:
         arrays = read_shard(s.path, sha256=s.sha256, config_hash=self.config_hash,
-                            sample_shape=self.sample_shape, samples=s.samples)
+                            sample_shape=self.sample_shape, samples=s.samples, size=s.size)
         n_ep = s.episode_samples.shape[0]
         local = arrays["episode"] - s.first_episode
         if (arrays["scenario"] != s.scenario).any() or local.min(initial=0) < 0 or local.max(initial=0) >= max(n_ep, 1):

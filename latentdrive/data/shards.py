@@ -28,8 +28,8 @@ from __future__ import annotations
 
 import hashlib
 import io
+import itertools
 import json
-import os
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -38,7 +38,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from latentdrive.config import LatentDriveError
+from latentdrive.errors import LatentDriveError
+from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_bytes, confined, read_bytes, read_json
 
 __all__ = [
     "FORMAT",
@@ -50,7 +51,6 @@ __all__ = [
     "SHARD_KEYS",
     "DatasetError",
     "array_digest",
-    "atomic_write_bytes",
     "dequantize",
     "quantize",
     "read_manifest",
@@ -64,10 +64,11 @@ FORMAT_VERSION = 1
 MANIFEST = "manifest.json"
 #: Largest absolute error of :func:`dequantize` ∘ :func:`quantize` on [0, 1]: half of 1/255.
 QUANT_MAX_ERROR = 1.0 / 510.0
+#: Largest shard read when the manifest's recorded size is not at hand (bytes).
+MAX_SHARD_BYTES = 4 << 30
 IMAGE_KEYS: tuple[str, ...] = ("noisy", "clean")
 INDEX_KEYS: tuple[str, ...] = ("scenario", "episode", "seed", "step", "agent")
 SHARD_KEYS: frozenset[str] = frozenset((*IMAGE_KEYS, *INDEX_KEYS, "config_hash"))
-TMP_SUFFIX = ".tmp"
 
 
 class DatasetError(LatentDriveError):
@@ -101,25 +102,6 @@ def array_digest(arrays: Mapping[str, np.ndarray]) -> str:
     return h.hexdigest()
 
 
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same directory and a rename."""
-    tmp = path.with_name(f".{path.name}.{os.getpid()}{TMP_SUFFIX}")
-    try:
-        with open(tmp, "wb") as f:
-            f.write(data)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    finally:
-        if tmp.exists():
-            tmp.unlink()
-
-
-def is_temp_file(path: Path) -> bool:
-    """Whether ``path`` is a temporary file left by :func:`atomic_write_bytes`."""
-    return path.name.startswith(".") and path.name.endswith(TMP_SUFFIX)
-
-
 def write_shard(path: Path, arrays: Mapping[str, np.ndarray]) -> tuple[str, int]:
     """Atomically write a shard; returns ``(sha256 of the file, its size in bytes)``."""
     missing = SHARD_KEYS - set(arrays)
@@ -140,20 +122,21 @@ def read_shard(
     config_hash: str,
     sample_shape: tuple[int, ...],
     samples: int | None = None,
+    size: int | None = None,
 ) -> dict[str, np.ndarray]:
     """Load and check one shard; every failure is a :class:`DatasetError` naming ``path``.
 
-    Checks, in order: the file's sha256 (when given), that it is a zip of ``.npy`` members
-    (never unpickled), the exact set of arrays, their dtypes and shapes (images
+    Checks, in order: the file's size (at most ``size`` bytes are read when given, the
+    size the manifest recorded), its sha256 (when given), that it is a zip of ``.npy``
+    members (never unpickled), the exact set of arrays, their dtypes and shapes (images
     ``(n, *sample_shape)``, ``n`` equal to ``samples`` when given) and the config hash
     stored inside.
     """
     try:
-        data = path.read_bytes()
+        data = read_bytes(path, limit=MAX_SHARD_BYTES if size is None else size, what="shard",
+                          error=DatasetError)
     except FileNotFoundError:
         raise DatasetError(f"{path}: shard is missing") from None
-    except OSError as exc:
-        raise DatasetError(f"{path}: cannot read shard ({exc.strerror})") from None
     if sha256 is not None and hashlib.sha256(data).hexdigest() != sha256:
         raise DatasetError(f"{path}: shard is corrupt (sha256 differs from the manifest)")
     try:
@@ -202,14 +185,17 @@ _MANIFEST_KEYS = ("format", "version", "config_hash", "config", "scenarios", "en
 
 
 def read_manifest(root: Path) -> dict[str, Any]:
-    """Read and structurally check ``root/manifest.json``; :class:`DatasetError` naming it otherwise."""
+    """Read and check ``root/manifest.json``; :class:`DatasetError` naming it otherwise.
+
+    Beyond its format and version, every unit must be complete (name, scenario, first
+    episode, episode count) and every shard name a file inside ``root``: a manifest can
+    never make a reader open a file elsewhere.
+    """
     path = root / MANIFEST
     try:
-        manifest = json.loads(path.read_text())
+        manifest = read_json(path, limit=MAX_JSON_BYTES, what="dataset manifest", error=DatasetError)
     except FileNotFoundError:
         raise DatasetError(f"{path}: no dataset manifest (collect one with `latentdrive collect`)") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise DatasetError(f"{path}: manifest is corrupt ({str(exc).splitlines()[0]})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise DatasetError(f"{path}: not a latentdrive dataset manifest")
     if manifest.get("version") != FORMAT_VERSION:
@@ -222,29 +208,63 @@ def read_manifest(root: Path) -> dict[str, Any]:
         raise DatasetError(f"{path}: manifest is corrupt (missing {', '.join(missing)})")
     try:
         _check_manifest_types(manifest)
-    except (TypeError, ValueError, KeyError) as exc:
+    except (TypeError, ValueError) as exc:
         raise DatasetError(f"{path}: manifest is corrupt ({exc})") from None
+    for unit in manifest["units"]:
+        confined(root, unit["name"], source=path, error=DatasetError)
     return manifest
+
+
+def _count(value: Any, what: str, low: int = 0) -> int:
+    """``value`` when it is an integer >= ``low`` (JSON numbers such as 2.5 or true are not)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < low:
+        raise ValueError(f"{what} must be an integer >= {low}, got {value!r}")
+    return value
 
 
 def _check_manifest_types(m: dict[str, Any]) -> None:
     if not (isinstance(m["scenarios"], list) and all(isinstance(s, str) for s in m["scenarios"])):
         raise TypeError("scenarios must be a list of names")
+    if not isinstance(m["config_hash"], str):
+        raise TypeError("config_hash must be a string")
     if not (isinstance(m["sample_shape"], list) and len(m["sample_shape"]) == 4
             and all(isinstance(v, int) and v > 0 for v in m["sample_shape"])):
         raise TypeError("sample_shape must be 4 positive integers")
     if not isinstance(m["units"], list) or not isinstance(m["shards"], dict):
         raise TypeError("units must be a list and shards a mapping")
-    names = set()
-    for u in m["units"]:
-        names.add(str(u["name"]))
-        if not 0 <= int(u["scenario"]) < len(m["scenarios"]):
-            raise ValueError(f"unit {u['name']} has scenario index {u['scenario']} out of range")
+    episodes: dict[str, int] = {}
+    spans = []
+    for i, u in enumerate(m["units"]):
+        if not isinstance(u, dict):
+            raise TypeError(f"unit {i} is not a mapping")
+        lacking = [k for k in ("name", "scenario", "first_episode", "episodes") if k not in u]
+        if lacking:
+            raise ValueError(f"unit {i} lacks {', '.join(lacking)}")
+        name = u["name"]
+        if not isinstance(name, str) or name in episodes:
+            raise ValueError(f"unit {i} has a missing or repeated name {name!r}")
+        if not 0 <= _count(u["scenario"], f"unit {name}: scenario") < len(m["scenarios"]):
+            raise ValueError(f"unit {name} has scenario index {u['scenario']} out of range")
+        first = _count(u["first_episode"], f"unit {name}: first_episode")
+        episodes[name] = _count(u["episodes"], f"unit {name}: episodes", low=1)
+        spans.append((first, first + episodes[name]))
+    spans.sort()
+    if any(b[0] < a[1] for a, b in itertools.pairwise(spans)):
+        raise ValueError("two units share episode ids")
     for name, entry in m["shards"].items():
-        if name not in names:
+        if name not in episodes:
             raise ValueError(f"shard {name} is not one of the planned units")
+        if not isinstance(entry, dict):
+            raise TypeError(f"shard {name} is not a mapping")
         for key in ("samples", "sha256", "bytes", "episode_samples", "content_sha256"):
             if key not in entry:
-                raise KeyError(f"shard {name} lacks {key!r}")
-        if sum(int(c) for c in entry["episode_samples"]) != int(entry["samples"]):
+                raise ValueError(f"shard {name} lacks {key!r}")
+        counts = entry["episode_samples"]
+        if not isinstance(counts, list) or len(counts) != episodes[name]:
+            raise ValueError(f"shard {name}: episode_samples must list one count per episode")
+        total = sum(_count(c, f"shard {name}: an episode's samples") for c in counts)
+        if total != _count(entry["samples"], f"shard {name}: samples"):
             raise ValueError(f"shard {name}: episode sample counts do not add up")
+        _count(entry["bytes"], f"shard {name}: bytes")
+        if not isinstance(entry["sha256"], str):
+            raise TypeError(f"shard {name}: sha256 must be a string")

@@ -16,8 +16,8 @@ import numpy as np
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from latentdrive.bnn.checkpoint import atomic_write_bytes
 from latentdrive.config import ObservationConfig
+from latentdrive.fileio import atomic_write_bytes
 from latentdrive.observe import CHANNELS
 from latentdrive.scene import Scene
 from latentdrive.viz import draw_scene

@@ -27,15 +27,29 @@ import torch.nn.functional as F
 from pydantic import Field, field_validator
 
 from latentdrive.bnn.batch import BNNBatch
-from latentdrive.bnn.checkpoint import atomic_write_text
+from latentdrive.bnn.checkpoint import read_checkpoint
 from latentdrive.bnn.distance import distance_matrix
 from latentdrive.bnn.evaluate import add_counts, evaluate_bnn, vehicle_counts_by_scenario
-from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
+from latentdrive.bnn.train import (
+    CHECKPOINT_NAME,
+    BNNTrainConfig,
+    check_run_dir,
+    load_trained_bottleneck,
+    train_bnn,
+)
 from latentdrive.bnn.vehicles import VehicleCounts
 from latentdrive.config import Config, ConfigError, load_yaml, merge_overrides, validate
-from latentdrive.data.collect import CollectConfig, collect
+from latentdrive.data.collect import (
+    CollectConfig,
+    check_collect_target,
+    collect,
+    resolve_env_configs,
+)
 from latentdrive.data.dataset import ShardDataset
+from latentdrive.data.shards import DatasetError
+from latentdrive.experiments.bnn_report import epoch_rows, read_report
 from latentdrive.experiments.heldout import HeldOut, held_out
+from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
 from latentdrive.runlock import dir_lock
 
@@ -43,12 +57,15 @@ __all__ = [
     "BNNStudyConfig",
     "figures_from_study",
     "load_study_config",
+    "read_study_config",
     "run_bnn_study",
     "run_name",
     "train_on_dataset",
 ]
 
 PRESETS_DIR = Path(__file__).parent / "presets"
+SPLIT = "split.json"
+STUDY_CONFIG = "study_config.json"
 STUDY_PRESETS = ("tiny", "small", "paper")
 
 
@@ -114,9 +131,7 @@ def train_on_dataset(
     """
     ds = ShardDataset(dataset_dir)
     train_ids, val_ids = _split(ds, val_fraction, train_cfg.seed)
-    _, t, h, w = ds.sample_shape
-    model_cfg = validate(BottleneckConfig, {"latent_dim": latent_dim, "channels": channels, **(model or {}),
-                                            "input_shape": (t, h, w)}, prefix="model.")
+    model_cfg = _model_config(latent_dim, channels, model, ds.sample_shape)
     plain = ds.batches_fn(train_cfg.batch_size, train_ids, seed=train_cfg.seed, mixed=False)
     mixed = ds.batches_fn(train_cfg.batch_size, train_ids, seed=train_cfg.seed, mixed=True)
 
@@ -127,12 +142,41 @@ def train_on_dataset(
         return ds.batches(train_cfg.batch_size, val_ids, seed=train_cfg.seed, epoch=0, mixed=False)
 
     run = Path(run_dir)
+    split = {"dataset": str(Path(dataset_dir).resolve()), "val_fraction": val_fraction,
+             "train_episodes": train_ids.tolist(), "val_episodes": val_ids.tolist()}
+    # Refusals come before anything is written, the lock file included; train_bnn checks
+    # the run again under the lock.
+    check_run_dir(run, train_cfg, model_cfg, resume)
+    _check_split(run, split)
     # Held from the split record on, so a refused second run writes nothing here.
     with dir_lock(run, "train-bnn"):
-        atomic_write_text(run / "split.json", json.dumps({
-            "dataset": str(Path(dataset_dir).resolve()), "val_fraction": val_fraction,
-            "train_episodes": train_ids.tolist(), "val_episodes": val_ids.tolist()}) + "\n")
+        atomic_write_text(run / SPLIT, json.dumps(split) + "\n")
         return train_bnn(train_cfg, model_cfg, train_fn, val_fn, run, resume=resume, progress=progress)
+
+
+def _model_config(latent_dim: int, channels: tuple[int, ...], model: dict[str, Any] | None,
+                  sample_shape: tuple[int, ...]) -> BottleneckConfig:
+    """The BNN architecture of a run on samples of ``sample_shape`` ``(4, T, H, W)``."""
+    _, t, h, w = sample_shape
+    return validate(BottleneckConfig, {"latent_dim": latent_dim, "channels": channels, **(model or {}),
+                                       "input_shape": (t, h, w)}, prefix="model.")
+
+
+def _check_split(run: Path, split: dict[str, Any]) -> None:
+    """Refuse to continue a trained run on other episodes than it was trained on.
+
+    The split follows from the seed and ``val_fraction``; the seed is checked with the
+    other training settings, ``val_fraction`` only here. Held-out episodes moved into
+    training would make every held-out score of the run meaningless.
+    """
+    path = run / SPLIT
+    if not (run / CHECKPOINT_NAME).exists() or not path.exists():
+        return
+    old = read_json(path, limit=MAX_JSON_BYTES, what="episode split", error=ConfigError)
+    keys = ("train_episodes", "val_episodes")
+    if not isinstance(old, dict) or any(old.get(k) != split[k] for k in keys):
+        raise ConfigError(f"{path}: the run was trained on another episode split (another val_fraction "
+                          "or dataset); resume it with the same settings or use a new run directory")
 
 
 @torch.no_grad()
@@ -217,17 +261,21 @@ def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.nda
 
 def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
                   say: Callable[[str], None] = print) -> dict[str, Any]:
-    """Run (or resume) the whole study into ``out``; returns the report it writes."""
+    """Run (or resume) the whole study into ``out``; returns the report it writes.
+
+    What the study would refuse (another config's dataset in ``out``, runs that cannot be
+    resumed with ``cfg``) is checked before anything is written.
+    """
     out = Path(out)
+    _check_study_target(cfg, out)
     out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(out / "study_config.json", json.dumps(cfg.model_dump(mode="json"), indent=1) + "\n")
+    atomic_write_text(out / STUDY_CONFIG, json.dumps(cfg.model_dump(mode="json"), indent=1) + "\n")
     say(f"[1/4] dataset -> {out / 'dataset'}")
     collect(cfg.collect, out / "dataset", progress=progress)
     ds = ShardDataset(out / "dataset")
     _, val_ids = _split(ds, cfg.val_fraction, cfg.train.seed)
 
-    runs: list[tuple[str, int, float]] = [(run_name(d), d, 0.0) for d in cfg.latent_dims]
-    runs += [(run_name(max(cfg.latent_dims), lam), max(cfg.latent_dims), lam) for lam in cfg.lambdas]
+    runs = _study_runs(cfg)
     for i, (name, d, lam) in enumerate(runs):
         say(f"[2/4] training {name} ({i + 1}/{len(runs)}) -> {out / 'runs' / name}")
         train_on_dataset(out / "dataset", out / "runs" / name, cfg.train.replace(lambda_distance=lam), d,
@@ -257,16 +305,60 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
     return report
 
 
+def _study_runs(cfg: BNNStudyConfig) -> list[tuple[str, int, float]]:
+    """``(name, latent size, λ)`` of every run of the study."""
+    runs = [(run_name(d), d, 0.0) for d in cfg.latent_dims]
+    return runs + [(run_name(max(cfg.latent_dims), lam), max(cfg.latent_dims), lam) for lam in cfg.lambdas]
+
+
+def _check_study_target(cfg: BNNStudyConfig, out: Path) -> None:
+    """Raise what the study would refuse in ``out`` (another config's dataset, runs that
+    cannot be resumed with ``cfg``), before anything is written there."""
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder")
+    check_collect_target(cfg.collect, out / "dataset")
+    sample_shape = resolve_env_configs(cfg.collect)[0].observation.shape
+    split = None
+    try:
+        train_ids, val_ids = _split(ShardDataset(out / "dataset"), cfg.val_fraction, cfg.train.seed)
+        split = {"train_episodes": train_ids.tolist(), "val_episodes": val_ids.tolist()}
+    except DatasetError:  # not collected (completely) yet: no run can have trained on it
+        pass
+    for name, d, lam in _study_runs(cfg):
+        run = out / "runs" / name
+        check_run_dir(run, cfg.train.replace(lambda_distance=lam), _model_config(d, cfg.channels, None, sample_shape),
+                      resume=True)
+        if split is not None:
+            _check_split(run, split)
+
+
+def read_study_config(out: Path) -> BNNStudyConfig:
+    """The config a study in ``out`` was run with; a one-line :class:`ConfigError` naming the
+    file when it is unusable (``FileNotFoundError`` when missing)."""
+    path = out / STUDY_CONFIG
+    data = read_json(path, limit=MAX_JSON_BYTES, what="study config", error=ConfigError)
+    try:
+        return validate(BNNStudyConfig, data)
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
 def figures_from_study(out: str | Path) -> list[Path]:
-    """Redraw the figures of a finished study directory from its saved config and report."""
+    """Redraw the figures of a finished study directory from its saved config and report.
+
+    Every file the figures need (config, report, each run's checkpoint and training log)
+    is read and checked before the first figure is redrawn: an unusable one is a
+    one-line error and leaves the figures as they were.
+    """
     out = Path(out)
     try:
-        cfg = validate(BNNStudyConfig, json.loads((out / "study_config.json").read_text()))
-        report = json.loads((out / "report.json").read_text())
+        cfg = read_study_config(out)
+        report = read_report(out)
     except FileNotFoundError as exc:
         raise ConfigError(f"{out}: not a finished study directory (missing {Path(exc.filename).name}); run `latentdrive bnn-study {out}`") from None
-    except json.JSONDecodeError as exc:
-        raise ConfigError(f"{out}: corrupt study file ({exc})") from None
+    for name in report["runs"]:
+        read_checkpoint(out / "runs" / name / CHECKPOINT_NAME)
+        epoch_rows(out / "runs" / name)
     ds = ShardDataset(out / "dataset")
     _, val_ids = _split(ds, cfg.val_fraction, cfg.train.seed)
     from latentdrive.experiments.bnn_figures import write_bnn_figures

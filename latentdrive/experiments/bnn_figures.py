@@ -3,7 +3,7 @@ latent_rep), plus the scenario distance matrices the paper names but never shows
 
 from __future__ import annotations
 
-import csv
+import io
 from pathlib import Path
 from typing import Any
 
@@ -15,7 +15,9 @@ import numpy as np
 import torch
 
 from latentdrive.bnn.train import load_trained_bottleneck
+from latentdrive.experiments.bnn_report import epoch_rows
 from latentdrive.experiments.heldout import HeldOut
+from latentdrive.fileio import atomic_write_bytes
 from latentdrive.models.bottleneck import BottleneckNetwork
 from latentdrive.observe import CHANNELS
 
@@ -25,18 +27,11 @@ SHOWN = ("roundabout", "intersection")
 
 
 def _save(fig: plt.Figure, path: Path) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig.tight_layout()
-    tmp = path.with_name(path.name + ".tmp.png")
-    fig.savefig(tmp, dpi=90, bbox_inches="tight")
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
     plt.close(fig)
-    tmp.replace(path)
-    return path
-
-
-def _epoch_rows(run_dir: Path) -> list[dict[str, str]]:
-    with (run_dir / "metrics.csv").open(newline="") as f:
-        return [r for r in csv.DictReader(f) if r["kind"] == "epoch"]
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 def loss_curves(out: Path, run_names: list[str], input_recall: float | None = None) -> Path:
@@ -44,7 +39,7 @@ def loss_curves(out: Path, run_names: list[str], input_recall: float | None = No
     held-out vehicles recovered (right; ``input_recall``, the noisy input's own, as a line)."""
     fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(12, 4))
     for i, name in enumerate(run_names):
-        rows = _epoch_rows(out / "runs" / name)
+        rows = epoch_rows(out / "runs" / name)
         epochs = [int(r["epoch"]) + 1 for r in rows]
         color = f"C{i}"
         ax.plot(epochs, [float(r["recon"]) for r in rows], color=color, label=f"{name} train")

@@ -9,13 +9,13 @@ from typing import Any
 import numpy as np
 import torch
 
-from latentdrive.bnn.checkpoint import atomic_write_text
 from latentdrive.config import ConfigError
 from latentdrive.evaluate.gif import save_episode_gif
 from latentdrive.evaluate.planner import PlannerConfig
 from latentdrive.evaluate.policies import SIMULATOR_POLICIES, reference_policy
 from latentdrive.evaluate.report import PolicyReport, compare, policy_report
 from latentdrive.evaluate.run import evaluate_policy
+from latentdrive.fileio import atomic_write_text
 from latentdrive.models.bottleneck import PAIR_CHANNELS
 from latentdrive.models.vfan import QNetwork
 from latentdrive.outcome import EpisodeOutcome

@@ -8,6 +8,7 @@ from pathlib import Path
 from typing import Any
 
 from latentdrive.config import ConfigError, merge_overrides, parse_override_args
+from latentdrive.fileio import output_problem
 
 __all__ = ["add_policy_parsers"]
 
@@ -114,8 +115,9 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if clash:
         raise ConfigError(f"{clash[0]!r} names both a run and a reference policy; give the run as ./{clash[0]}")
     for flag, out in (("--json", args.json), ("--gif", args.gif)):
-        if out and (Path(out).is_dir() or (Path(out).parent.exists() and not Path(out).parent.is_dir())):
-            raise ConfigError(f"{flag} {out}: not a writable file path")
+        problem = output_problem(out) if out else None
+        if problem:
+            raise ConfigError(f"{flag} {out}: cannot write a file there ({problem})")
     if len(set(scenarios)) != len(scenarios):
         raise ConfigError(f"--scenarios repeats a name: {', '.join(scenarios)}")
     observations = [c["train"]["observation"] for c in configs]

@@ -7,7 +7,6 @@ model tensors include the encoder: a run is self-contained once trained.
 
 from __future__ import annotations
 
-import json
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -21,6 +20,7 @@ from latentdrive.actions import N_ACTIONS
 from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
 from latentdrive.bnn.train import load_trained_bottleneck
 from latentdrive.config import ConfigError, config_hash, validate
+from latentdrive.fileio import read_json
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.models.vfan import QNetwork
 from latentdrive.rl.config import PolicyTrainConfig
@@ -148,17 +148,24 @@ def greedy_policy(net: QNetwork, device: torch.device) -> Callable[[], Policy]:
 
 
 def read_run_config(run_dir: str | Path) -> dict[str, Any]:
-    """A policy run's config.json, or a one-line error when it is not a policy run."""
+    """A policy run's config.json, or a one-line error when it is not a policy run.
+
+    Its ``train`` section is validated (and completed with the defaults of fields it
+    predates), so callers may index it without meeting a hand-edited or damaged file's
+    missing keys.
+    """
     path = Path(run_dir) / CONFIG
     try:
-        data = json.loads(path.read_text())
+        data = read_json(path, what="run config", error=ConfigError)
     except FileNotFoundError:
         raise ConfigError(f"{run_dir}: not a policy run (no {CONFIG})") from None
-    except (OSError, json.JSONDecodeError) as exc:
-        raise ConfigError(f"{path}: unreadable ({str(exc).splitlines()[0]})") from None
-    if not isinstance(data, dict) or data.get("kind") != "policy" or "train" not in data:
+    if not isinstance(data, dict) or data.get("kind") != "policy" or not isinstance(data.get("train"), dict):
         raise ConfigError(f"{path}: not a policy run's config")
-    return data
+    try:
+        train = validate(PolicyTrainConfig, data["train"])
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+    return {**data, "train": train.model_dump(mode="json")}
 
 
 def scenario_hashes(scenarios: Sequence[str]) -> dict[str, str]:

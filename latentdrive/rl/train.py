@@ -26,16 +26,11 @@ import torch
 from safetensors.numpy import load_file as np_load_file
 from safetensors.numpy import save as np_save
 
-from latentdrive.bnn.checkpoint import (
-    CheckpointError,
-    atomic_write_bytes,
-    atomic_write_text,
-    load_checkpoint,
-    save_checkpoint,
-)
+from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from latentdrive.config import ConfigError, config_hash
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
+from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
@@ -186,26 +181,36 @@ class Learner:
             self.target.load_state_dict(target_sd, strict=True)
         except RuntimeError:
             raise CheckpointError(f"{run_dir / CHECKPOINT}: target network does not match the model") from None
-        self.transitions = int(info.extra["transitions"])
-        self.updates = int(info.extra["updates"])
-        self.episodes = int(info.extra["episodes"])
+        try:
+            self.transitions = int(info.extra["transitions"])
+            self.updates = int(info.extra["updates"])
+            self.episodes = int(info.extra["episodes"])
+            segment = int(info.extra["segment"])
+            replay_added = int(info.extra.get("replay_added", -1))
+        except (KeyError, TypeError, ValueError):
+            raise CheckpointError(f"{run_dir / CHECKPOINT}: not a policy run's checkpoint (no training counters)") from None
         if self.transitions >= self.cfg.steps:
-            return int(info.extra["segment"]) + 1
+            return segment + 1
         # Checkpoints written before replays were named per segment used one fixed name.
-        name = str(info.extra.get("replay", "replay.safetensors"))
-        if not (REPLAY_PATTERN.fullmatch(name) or name == "replay.safetensors"):  # never follow a path the file names
+        name = info.extra.get("replay", "replay.safetensors")
+        path = confined(run_dir, name, source=run_dir / CHECKPOINT, error=CheckpointError)
+        if not (REPLAY_PATTERN.fullmatch(str(name)) or name == "replay.safetensors"):
             raise CheckpointError(f"{run_dir / CHECKPOINT}: names no valid replay file ({name!r})")
-        path = run_dir / name
         try:
             arrays = np_load_file(str(path))
             self.replay.load_state(arrays)
         except FileNotFoundError:
             raise CheckpointError(f"{path}: missing; the run cannot resume without its replay") from None
-        except (ValueError, KeyError, OSError) as exc:
-            raise CheckpointError(f"{path}: unusable replay ({str(exc).splitlines()[0]})") from None
-        if self.replay.added != int(info.extra["replay_added"]):
+        except Exception as exc:  # the safetensors parser raises its own error types
+            raise CheckpointError(f"{path}: unusable replay ({_one_line(exc)})") from None
+        if self.replay.added != replay_added:
             raise CheckpointError(f"{path}: replay does not belong to the checkpoint (written by another save)")
-        return int(info.extra["segment"]) + 1
+        return segment + 1
+
+
+def _one_line(exc: BaseException) -> str:
+    lines = str(exc).strip().splitlines()
+    return lines[0] if lines else type(exc).__name__
 
 
 def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]:

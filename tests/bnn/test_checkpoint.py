@@ -2,16 +2,29 @@
 
 from __future__ import annotations
 
+import io
+import json
 import os
+import pickle
+import tempfile
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from safetensors.torch import save_file
 
+from latentdrive import fileio
 from latentdrive.bnn import checkpoint as ckpt_mod
-from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from latentdrive.bnn.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+)
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 
 CFG = BottleneckConfig(input_shape=(2, 8, 16), latent_dim=8, channels=(4, 8))
@@ -170,7 +183,7 @@ def test_writes_are_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> N
     def broken_replace(src: str, dst: str) -> None:
         raise OSError("disk full")
 
-    monkeypatch.setattr(ckpt_mod.os, "replace", broken_replace)
+    monkeypatch.setattr(fileio.os, "replace", broken_replace)
     _one_more_step(model, opt)
     with pytest.raises(OSError, match="disk full"):
         save_checkpoint(path, model, opt, step=4, epoch=2)
@@ -182,11 +195,133 @@ def test_writes_are_atomic(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> N
 def test_loading_never_unpickles(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     model, opt = _trained()
     path = save_checkpoint(tmp_path / "c.safetensors", model, opt, step=3, epoch=1)
+    data = path.read_bytes()
+    # The file is safetensors (a header length, then a JSON header, then raw tensor bytes),
+    # neither torch.save's zip archive nor a pickle stream.
+    n = int.from_bytes(data[:8], "little")
+    assert data[8:9] == b"{" and isinstance(json.loads(data[8 : 8 + n]), dict)
+    assert not data.startswith((b"PK", b"\x80"))
 
-    def forbidden(*args: object, **kwargs: object) -> None:
-        raise AssertionError("torch.load must not be used")
+    calls: list[str] = []
 
-    monkeypatch.setattr(torch, "load", forbidden)
-    monkeypatch.setattr("pickle.loads", forbidden)
+    def forbidden(name: str):
+        def call(*args: object, **kwargs: object) -> None:
+            calls.append(name)
+            raise AssertionError(f"{name} must not be used")
+
+        return call
+
+    class NoUnpickler:
+        def __init__(self, *args: object, **kwargs: object) -> None:
+            calls.append("pickle.Unpickler")
+            raise AssertionError("pickle.Unpickler must not be used")
+
+    pickle_load = torch.load
+    monkeypatch.setattr(torch, "load", forbidden("torch.load"))
+    monkeypatch.setattr(pickle, "load", forbidden("pickle.load"))
+    monkeypatch.setattr(pickle, "loads", forbidden("pickle.loads"))
+    monkeypatch.setattr(pickle, "Unpickler", NoUnpickler)
+    # The trap catches a pickle-based load ...
+    buf = io.BytesIO()
+    torch.save(model.state_dict(), buf)
+    with pytest.raises(AssertionError):
+        pickle_load(io.BytesIO(buf.getvalue()), weights_only=False)
+    assert calls == ["pickle.Unpickler"]
+    calls.clear()
+    # ... and loading a checkpoint springs none of it, yet restores the weights.
     fresh = BottleneckNetwork(CFG)
-    load_checkpoint(path, fresh, torch.optim.AdamW(fresh.parameters()))
+    info = load_checkpoint(path, fresh, torch.optim.AdamW(fresh.parameters()))
+    assert calls == []
+    assert info.step == 3 and info.epoch == 1
+    for name, value in model.state_dict().items():
+        assert torch.equal(fresh.state_dict()[name], value), name
+
+
+def _rewrite_metadata(path: Path, change: Callable[[dict[str, str]], None]) -> None:
+    """Rewrite a safetensors file's metadata through ``change``, keeping its tensors."""
+    data = path.read_bytes()
+    n = int.from_bytes(data[:8], "little")
+    header = json.loads(data[8 : 8 + n])
+    change(header["__metadata__"])
+    raw = json.dumps(header, separators=(",", ":")).encode()
+    raw += b" " * (-len(raw) % 8)
+    path.write_bytes(len(raw).to_bytes(8, "little") + raw + data[8 + n :])
+
+
+def _set_state(key: str, value: object) -> Callable[[dict[str, str]], None]:
+    def change(meta: dict[str, str]) -> None:
+        state = json.loads(meta["state"])
+        state[key] = value
+        meta["state"] = json.dumps(state, sort_keys=True)
+
+    return change
+
+
+@pytest.mark.parametrize(("key", "value"), [("step", 4), ("epoch", 0), ("config", {"lr": 1.0})])
+def test_tampering_with_the_json_state_is_detected(tmp_path: Path, key: str, value: object) -> None:
+    model, opt = _trained()
+    path = save_checkpoint(tmp_path / "c.safetensors", model, opt, step=3, epoch=1, config={"lr": 0.01})
+    # Rewriting the metadata unchanged keeps the file loadable: what follows is the change.
+    _rewrite_metadata(path, lambda meta: None)
+    assert load_checkpoint(path, BottleneckNetwork(CFG)).step == 3
+    _rewrite_metadata(path, _set_state(key, value))
+    with pytest.raises(CheckpointError, match="checksum mismatch") as exc:
+        load_checkpoint(path, BottleneckNetwork(CFG))
+    _assert_one_line_naming(exc, path)
+
+
+def test_version_1_files_are_still_read(tmp_path: Path) -> None:
+    """Files written before the digest covered the state (version 1) load as before."""
+    model, opt = _trained()
+    path = save_checkpoint(tmp_path / "c.safetensors", model, opt, step=3, epoch=1)
+    tensors, _ = read_checkpoint(path)
+
+    def to_v1(meta: dict[str, str]) -> None:
+        meta["version"] = "1"
+        meta["digest"] = ckpt_mod._digest(tensors, None)
+
+    _rewrite_metadata(path, to_v1)
+    fresh = BottleneckNetwork(CFG)
+    assert load_checkpoint(path, fresh, torch.optim.AdamW(fresh.parameters())).step == 3
+    _rewrite_metadata(path, lambda meta: meta.update(version="3"))
+    with pytest.raises(CheckpointError, match="format version '3'"):
+        load_checkpoint(path, fresh)
+
+
+def test_an_oversized_header_is_refused_before_reading_on(tmp_path: Path) -> None:
+    path = tmp_path / "c.safetensors"
+    path.write_bytes((200_000_000).to_bytes(8, "little") + b"{" + b" " * 1000)
+    with pytest.raises(CheckpointError, match="bad header length") as exc:
+        read_checkpoint(path)
+    _assert_one_line_naming(exc, path)
+
+
+@pytest.fixture(scope="module")
+def saved(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    path = tmp_path_factory.mktemp("saved") / "c.safetensors"
+    return save_checkpoint(path, *_trained(steps=1), step=1, epoch=1, config={"a": 1}, extra={"b": [1, 2]})
+
+
+@settings(max_examples=40, deadline=None)
+@given(data=st.data())
+def test_any_damage_is_an_error_or_changes_nothing(saved: Path, data: st.DataObject) -> None:
+    """Flipped bytes anywhere in the file: a CheckpointError, or (a flip that turns header
+    padding into other whitespace) exactly the saved tensors and state."""
+    original = saved.read_bytes()
+    damaged = bytearray(original)
+    for _ in range(data.draw(st.integers(1, 3), label="flips")):
+        i = data.draw(st.integers(0, len(damaged) - 1), label="offset")
+        damaged[i] ^= data.draw(st.integers(1, 255), label="mask")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "c.safetensors"
+        path.write_bytes(bytes(damaged))
+        try:
+            tensors, state = read_checkpoint(path)
+        except CheckpointError as exc:
+            assert "\n" not in str(exc) and str(exc).startswith(str(path))
+            return
+    want_tensors, want_state = read_checkpoint(saved)
+    assert state == want_state
+    assert tensors.keys() == want_tensors.keys()
+    assert all(torch.equal(tensors[k], want_tensors[k]) for k in tensors)
+

@@ -73,7 +73,7 @@ def test_missing_or_corrupt_manifest(dataset_copy: Path, tmp_path: Path) -> None
     with pytest.raises(DatasetError, match=f"{tmp_path / 'nowhere' / MANIFEST}: no dataset manifest"):
         ShardDataset(tmp_path / "nowhere")
     (dataset_copy / MANIFEST).write_text("{ not json")
-    with pytest.raises(DatasetError, match=f"{dataset_copy / MANIFEST}: manifest is corrupt"):
+    with pytest.raises(DatasetError, match=f"{dataset_copy / MANIFEST}: dataset manifest is not valid JSON"):
         ShardDataset(dataset_copy)
     (dataset_copy / MANIFEST).write_text(json.dumps({"format": "something else"}))
     with pytest.raises(DatasetError, match="not a latentdrive dataset manifest"):

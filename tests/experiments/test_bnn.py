@@ -5,7 +5,7 @@ import pytest
 from helpers import held_by_another_process
 
 from latentdrive.cli import main
-from latentdrive.config import ConfigError
+from latentdrive.config import ConfigError, LatentDriveError
 from latentdrive.experiments.bnn import (
     format_report,
     load_study_config,
@@ -167,3 +167,34 @@ def test_figures_command_redraws_and_rejects_non_study(tiny_study, tmp_path, cap
     assert fig.exists()
     assert main(["figures", "bnn", str(tmp_path)]) == 2
     assert "not a finished study directory" in capsys.readouterr().err
+
+
+def _files(root):
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_a_trained_run_is_not_resumed_on_another_split(tiny_study, tmp_path, capsys):
+    out, _, _ = tiny_study
+    run = tmp_path / "run"
+    args = ["train-bnn", str(out / "dataset"), str(run), "--latent-dim", "4", "--epochs", "1",
+            "--channels", "4", "-q", "--set", "batch_size=16"]
+    assert main(args) == 0
+    before = _files(run)
+    # Held-out episodes would move into training: refused, and the run is left as it was.
+    assert main([*args, "--resume", "--val-fraction", "0.5"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "another episode split" in err[0]
+    assert _files(run) == before
+
+
+@pytest.mark.parametrize(("change", "needle"), [
+    ({"val_fraction": 0.5}, "another episode split"),
+    ({"train": {"lr": 0.5}}, "other training settings"),
+    ({"collect": {"seed": 7}}, "holds a dataset of config"),
+])
+def test_a_study_rerun_that_would_be_refused_writes_nothing(tiny_study, change, needle):
+    out, cfg, _ = tiny_study
+    before = _files(out)
+    with pytest.raises(LatentDriveError, match=needle):
+        run_bnn_study(cfg.replace(**change), out, progress=False, say=lambda s: None)
+    assert _files(out) == before

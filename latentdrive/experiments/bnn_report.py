@@ -1,0 +1,131 @@
+"""Reading back what a BNN study wrote: its report and its runs' metrics, checked.
+
+``latentdrive figures bnn DIR`` redraws figures from files that may have been edited,
+truncated or copied from elsewhere. Everything the figures and the Markdown report use is
+checked here first, so that such a file is one line naming it, before any figure is
+redrawn, rather than a traceback halfway through.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+from latentdrive.config import ConfigError
+from latentdrive.fileio import MAX_JSON_BYTES, confined, read_json, read_text
+
+__all__ = ["MAX_METRICS_BYTES", "epoch_rows", "read_report"]
+
+#: Largest metrics.csv read (a row every few optimizer steps: a long run's is a few MiB).
+MAX_METRICS_BYTES = 256 << 20
+
+_EPOCH_FLOATS = ("recon", "val_loss")
+_OPTIONAL_FLOATS = ("val_vehicle_recall",)
+
+
+def _square(names: list[str], matrix: list[list[float]], what: str) -> None:
+    n = len(names)
+    if len(matrix) != n or any(len(row) != n for row in matrix):
+        raise ValueError(f"{what} must be {n}×{n}, one row and column per scenario")
+
+
+class _InputVehicles(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    vehicle_recall: float | None = None
+    vehicle_precision: float | None = None
+    by_scenario: dict[str, float | None] | None = None
+
+
+class _Run(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+
+    latent_dim: int = Field(ge=1)
+    lambda_: float = Field(alias="lambda", ge=0.0)
+    val_recon: float | None
+    mean_between_scenario_distance: float | None
+    latent_scenarios: list[str]
+    latent_distance: list[list[float]]
+    vehicle_recall: float | None = None
+
+    @model_validator(mode="after")
+    def _shapes(self) -> _Run:
+        _square(self.latent_scenarios, self.latent_distance, "latent_distance")
+        return self
+
+
+class _Report(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+    dataset_samples: int = Field(ge=0)
+    held_out_samples: int = Field(ge=0)
+    raw_scenarios: list[str]
+    raw_distance: list[list[float]]
+    raw_mean_between_scenario_distance: float | None
+    noisy_input_vehicles: _InputVehicles | None = None
+    runs: dict[str, _Run] = Field(min_length=1)
+
+    @model_validator(mode="after")
+    def _shapes(self) -> _Report:
+        _square(self.raw_scenarios, self.raw_distance, "raw_distance")
+        if not any(r.lambda_ == 0 for r in self.runs.values()):
+            raise ValueError("no run with lambda 0")
+        return self
+
+
+def read_report(out: Path) -> dict[str, Any]:
+    """``out/report.json`` checked: every field the figures and tables use, with its type.
+
+    Run names are folders under ``out/runs``, so each must be a path inside it. Raises
+    :class:`ConfigError` naming the file and the first problem; a missing report raises
+    ``FileNotFoundError``.
+    """
+    path = out / "report.json"
+    data = read_json(path, limit=MAX_JSON_BYTES, what="study report", error=ConfigError)
+    try:
+        report = _Report.model_validate(data)
+    except ValidationError as exc:
+        err = exc.errors()[0]
+        loc = ".".join(str(p) for p in err["loc"]) or "report"
+        msg = err["msg"].removeprefix("Value error, ")
+        raise ConfigError(f"{path}: not a BNN study report ({loc}: {msg})") from None
+    for name in report.runs:
+        confined(out / "runs", name, source=path, error=ConfigError)
+    return report.model_dump(by_alias=True)
+
+
+def epoch_rows(run_dir: Path) -> list[dict[str, str]]:
+    """The per-epoch rows of a run's ``metrics.csv``, each with a numeric ``epoch``,
+    ``recon`` and ``val_loss`` (NaN allowed); :class:`ConfigError` naming the file otherwise."""
+    path = run_dir / "metrics.csv"
+    try:
+        text = read_text(path, limit=MAX_METRICS_BYTES, what="metrics file", error=ConfigError)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: missing; the run's training log is needed for its loss curve") from None
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    needed = {"kind", "epoch", *_EPOCH_FLOATS}
+    if not needed <= set(reader.fieldnames or ()):
+        raise ConfigError(f"{path}: not a BNN training log (no {', '.join(sorted(needed))} columns)")
+    rows = []
+    try:
+        for row in reader:
+            if row["kind"] == "epoch":
+                _check_epoch_row(row)
+                rows.append(row)
+    except (csv.Error, TypeError, ValueError):
+        raise ConfigError(f"{path}: line {reader.line_num} is not a valid epoch row") from None
+    return rows
+
+
+def _check_epoch_row(row: dict[str, str]) -> None:
+    if int(row["epoch"]) < 0:
+        raise ValueError("negative epoch")
+    for key in _EPOCH_FLOATS:
+        float(row[key])  # any float, NaN included
+    for key in _OPTIONAL_FLOATS:
+        if row.get(key):
+            float(row[key])
