@@ -50,15 +50,12 @@ def _random(seed: int) -> Policy:
 
 def _rule(seed: int) -> Policy:
     rng = np.random.default_rng(seed)
-    cruise: dict[str, float] = {}
 
     def policy(inp: PolicyInput) -> NDArray[np.int64]:
-        out = []
-        for scene, name in zip(inp.scenes, inp.scenarios, strict=True):
-            if name not in cruise:
-                cruise[name] = max(get_spec(name).av_target_speeds)
-            out.append(rule_policy(scene, rng, cruise_speed=cruise[name], lane_change_prob=0.0))
-        return np.stack(out)
+        # The specs the envs run (a spec file's name is not a preset name).
+        specs = inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios]
+        return np.stack([rule_policy(scene, rng, cruise_speed=max(spec.av_target_speeds), lane_change_prob=0.0)
+                         for scene, spec in zip(inp.scenes, specs, strict=True)])
 
     return policy
 

@@ -100,3 +100,13 @@ def test_a_plan_scores_what_the_env_would_pay(overrides: dict[str, Any]) -> None
             paid += np.where(over, 0.0, info["agents"].reward.sum(axis=1))
             over |= term | trunc
         np.testing.assert_allclose(scores[:, c], paid, atol=1e-9)
+
+
+def test_the_rule_reference_runs_on_a_spec_file(tmp_path) -> None:
+    from pathlib import Path
+
+    # Regression: the rule driver looked its cruise speed up by the scenario's name,
+    # which only presets have.
+    spec = Path(__file__).parents[2] / "docs" / "calibration" / "merge-2-ramp-hvs.yaml"
+    outcomes = evaluate_policy(reference_policy("rule"), [str(spec)], 2, envs=2)
+    assert [o.scenario for o in outcomes] == ["merge-2-ramp-hvs"] * 2
