@@ -22,16 +22,12 @@ same weights as an uninterrupted run.
 
 from __future__ import annotations
 
-import csv
-import io
 import json
 import math
-import resource
-import sys
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
 import numpy as np
 import torch
@@ -41,12 +37,13 @@ from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import (
     CheckpointError,
     load_checkpoint,
-    read_checkpoint,
     save_checkpoint,
 )
 from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
 from latentdrive.bnn.losses import LossKind, step_losses
 from latentdrive.bnn.prefetch import prefetch
+from latentdrive.bnn.resume import CHECKPOINT_NAME, check_run_dir, saved_configs
+from latentdrive.bnn.runlog import Meter, MetricsLog, peak_rss_mb
 from latentdrive.config import Config, config_hash, validate
 from latentdrive.fileio import atomic_write_text
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
@@ -56,29 +53,17 @@ from latentdrive.runtime import check_device, resolve_device, torch_settings
 __all__ = [
     "CHECKPOINT_NAME",
     "CONFIG_NAME",
-    "METRICS_NAME",
     "BNNTrainConfig",
     "check_run_dir",
     "load_trained_bottleneck",
     "train_bnn",
 ]
 
-CHECKPOINT_NAME = "checkpoint.safetensors"
 CONFIG_NAME = "config.json"
-METRICS_NAME = "metrics.csv"
 
 Phase = Literal["pretrain", "mixed"]
 
-# Fields that may change between a run and its resumption: they extend the schedule or
-# change logging only, not the computation of the epochs already done.
-_RESUMABLE_CHANGES = frozenset(
-    {"pretrain_epochs", "mixed_epochs", "log_every", "device", "num_threads", "prefetch"}
-)
 
-_METRIC_COLUMNS = (
-    "kind", "phase", "epoch", "step", "loss", "recon", "reg", "lr",
-    *VAL_KEYS, "samples_per_s", "peak_rss_mb", "peak_cuda_mb", "elapsed_s",
-)
 
 
 class BNNTrainConfig(Config):
@@ -192,141 +177,6 @@ class BNNTrainConfig(Config):
 
 
 # ---------------------------------------------------------------------------------------
-# Run bookkeeping
-
-
-def _peak_rss_mb() -> float:
-    rss = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    # Linux reports KiB, macOS bytes.
-    return rss / (1024 * 1024) if sys.platform == "darwin" else rss / 1024
-
-
-class _Meter:
-    """Running sums of the (total, recon, reg) losses over batches, with samples and seconds."""
-
-    def __init__(self) -> None:
-        self.sums = np.zeros(3)
-        self.batches = 0
-        self.samples = 0
-        self.seconds = 0.0
-
-    def add(self, values: np.ndarray, samples: int, seconds: float) -> None:
-        self.sums += values
-        self.batches += 1
-        self.samples += samples
-        self.seconds += seconds
-
-    def means(self) -> tuple[float, float, float]:
-        m = self.sums / max(self.batches, 1)
-        return float(m[0]), float(m[1]), float(m[2])
-
-    def rate(self) -> float:
-        """Samples per second."""
-        return self.samples / max(self.seconds, 1e-9)
-
-
-class _MetricsLog:
-    """metrics.csv plus TensorBoard scalars."""
-
-    def __init__(self, run_dir: Path, resume_step: int | None) -> None:
-        self.path = run_dir / METRICS_NAME
-        if resume_step is not None and self.path.exists():
-            # Drop rows logged after the checkpoint: those steps are about to be redone.
-            with self.path.open(newline="") as f:
-                rows = [
-                    r for r in csv.DictReader(f)
-                    if r.get("step", "") and int(r["step"]) <= resume_step
-                ]
-            buf = io.StringIO()
-            w = csv.DictWriter(buf, fieldnames=_METRIC_COLUMNS, extrasaction="ignore")
-            w.writeheader()
-            w.writerows(rows)
-            atomic_write_text(self.path, buf.getvalue())
-        else:
-            atomic_write_text(self.path, ",".join(_METRIC_COLUMNS) + "\n")
-        self._file = self.path.open("a", newline="")
-        self._csv = csv.DictWriter(self._file, fieldnames=_METRIC_COLUMNS)
-        from torch.utils.tensorboard import SummaryWriter
-
-        # purge_step hides TensorBoard events logged after the checkpoint (or, on a fresh
-        # start, by an earlier attempt that never reached one).
-        self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_step or 0)
-
-    def write(self, row: dict[str, Any]) -> None:
-        self._csv.writerow({k: ("" if v is None else v) for k, v in row.items()})
-        self._file.flush()
-        prefix = "train" if row["kind"] == "step" else "epoch"
-        for key in ("loss", "recon", "reg", *VAL_KEYS, "samples_per_s"):
-            v = row.get(key)
-            if v is not None and v == v:  # skip NaN
-                self.tb.add_scalar(f"{prefix}/{key}", float(v), int(row["step"]))
-
-    def close(self) -> None:
-        self._file.close()
-        self.tb.close()
-
-
-def _saved_configs(run_dir: Path) -> dict[str, Any] | None:
-    p = run_dir / CHECKPOINT_NAME
-    if not p.exists():
-        return None
-    return read_checkpoint(p)[1]["config"]
-
-
-def _changed_fields(saved: Any, cfg: Config, ignore: frozenset[str] = frozenset()) -> list[str]:
-    """Fields of ``cfg`` whose value differs from the saved JSON dump ``saved``, as
-    ``name (saved → now)``. A field missing from ``saved`` (a checkpoint written before the
-    field existed) counts as its default, which is what that run used."""
-    old = saved if isinstance(saved, dict) else {}
-    new = cfg.model_dump(mode="json")
-    defaults = type(cfg)().model_dump(mode="json")
-    return [
-        f"{k} ({old.get(k, defaults[k])} → {new[k]})"
-        for k in sorted(new)
-        if k not in ignore and old.get(k, defaults[k]) != new[k]
-    ]
-
-
-def _check_resumable(
-    ckpt: Path, saved: dict[str, Any], cfg: BNNTrainConfig, model_cfg: BottleneckConfig
-) -> None:
-    changed = _changed_fields(saved.get("model"), model_cfg)
-    if changed:
-        raise CheckpointError(
-            f"{ckpt}: checkpoint was made with another model config ({', '.join(changed)}); "
-            "pass the saved values or use a new run_dir"
-        )
-    changed = _changed_fields(saved.get("train"), cfg, _RESUMABLE_CHANGES)
-    if changed:
-        raise CheckpointError(
-            f"{ckpt}: checkpoint was made with other training settings ({', '.join(changed)}); "
-            "pass the saved values or use a new run_dir"
-        )
-
-
-def check_run_dir(run_dir: str | Path, cfg: BNNTrainConfig, model_cfg: BottleneckConfig,
-                  resume: bool) -> None:
-    """Raise what :func:`train_bnn` would refuse in ``run_dir``, writing nothing.
-
-    A run directory holding a checkpoint is refused without ``resume``, and with it when
-    the checkpoint is unreadable or was made with another model config or other training
-    settings (see :func:`train_bnn`). Callers that write files of their own into the run
-    directory check first, so that a refused run leaves them as they were.
-    """
-    ckpt = Path(run_dir) / CHECKPOINT_NAME
-    if not ckpt.exists():
-        return
-    if not resume:
-        raise CheckpointError(
-            f"{ckpt} exists: resume it (resume=True, --resume) or choose a new run directory"
-        )
-    saved = read_checkpoint(ckpt)[1].get("config")
-    if not isinstance(saved, dict):
-        raise CheckpointError(f"{ckpt}: not a BNN checkpoint (no saved configs)")
-    _check_resumable(ckpt, saved, cfg, model_cfg)
-
-
-# ---------------------------------------------------------------------------------------
 # Training
 
 
@@ -415,7 +265,7 @@ def _train(
             "train_hash": config_hash(cfg),
         }
         atomic_write_text(run / CONFIG_NAME, json.dumps(configs, indent=2, sort_keys=True) + "\n")
-        log = _MetricsLog(run, step if resumed else None)
+        log = MetricsLog(run, step if resumed else None)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
 
@@ -427,7 +277,7 @@ def _train(
                     group["lr"] = cfg.epoch_lr(epoch)
                 model.train()
                 t_epoch = time.perf_counter()
-                ep, window = _Meter(), _Meter()
+                ep, window = Meter(), Meter()
                 t_prev = time.perf_counter()
                 for batch in prefetch(train_batches_fn(epoch), cfg.prefetch):
                     b = batch.to(device)
@@ -457,7 +307,7 @@ def _train(
                             "lr": optimizer.param_groups[0]["lr"],
                             "samples_per_s": window.rate(),
                         })
-                        window = _Meter()
+                        window = Meter()
                     t_prev = time.perf_counter()
                 if ep.batches == 0:
                     raise ValueError(f"train_batches_fn({epoch}) yielded no batches")
@@ -478,7 +328,7 @@ def _train(
                     "train_reg": train_reg,
                     **val,
                     "samples_per_s": ep.rate(),
-                    "peak_rss_mb": _peak_rss_mb(),
+                    "peak_rss_mb": peak_rss_mb(),
                 }
                 if device.type == "cuda":
                     last["peak_cuda_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
@@ -526,7 +376,7 @@ def load_trained_bottleneck(
     when the checkpoint is missing, corrupt, or does not match its own config.
     """
     ckpt = Path(run_dir) / CHECKPOINT_NAME
-    saved = _saved_configs(Path(run_dir))
+    saved = saved_configs(Path(run_dir))
     if saved is None:
         raise CheckpointError(f"{ckpt}: no checkpoint in {run_dir}")
     try:

@@ -24,6 +24,7 @@ from latentdrive.bnn.losses import (
     vehicle_cells_l2,
     weighted_l2,
 )
+from latentdrive.bnn.resume import check_resumable
 from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
 from latentdrive.config import ConfigError, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
@@ -299,9 +300,9 @@ def test_a_checkpoint_from_before_a_field_existed_resumes(data: dict[str, np.nda
     saved = read_checkpoint(run / "checkpoint.safetensors")[1]["config"]
     for key in ("lr_schedule", "lr_final_fraction", "loss"):
         del saved["train"][key]
-    train_mod._check_resumable(run / "checkpoint.safetensors", saved, cfg, MODEL)
+    check_resumable(run / "checkpoint.safetensors", saved, cfg, MODEL)
     with pytest.raises(CheckpointError, match="lr_schedule"):
-        train_mod._check_resumable(run / "checkpoint.safetensors", saved, cfg.replace(lr_schedule="cosine"), MODEL)
+        check_resumable(run / "checkpoint.safetensors", saved, cfg.replace(lr_schedule="cosine"), MODEL)
     with pytest.raises(ValueError, match="no batches"):
         train_bnn(cfg, MODEL, lambda epoch: [], None, tmp_path / "empty", progress=False)
 
