@@ -5,7 +5,7 @@ BIN     := $(VENV)/bin
 STAMP   := $(VENV)/.installed
 TORCH   ?= torch==2.13.0
 
-.PHONY: run test test-all lint bench learning clean
+.PHONY: run test fuzz test-all lint bench learning clean
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -25,6 +25,11 @@ run: $(STAMP)
 ## test: the default (fast) test suite
 test: $(STAMP)
 	$(BIN)/python -m pytest -q
+
+## fuzz: the property tests with fresh random examples, 20x as many as the default suite
+fuzz: $(STAMP)
+	HYPOTHESIS_PROFILE=explore $(BIN)/python -m pytest -q tests/test_loaders_property.py tests/test_fileio.py tests/test_bad_input.py \
+		tests/bnn/test_checkpoint.py tests/data/test_manifest_property.py
 
 ## test-all: every test, slow ones included
 test-all: $(STAMP)

@@ -51,16 +51,21 @@ class Config(BaseModel):
         return validate(type(self), merge_overrides(self.model_dump(), changes))
 
 
-def _format_validation_error(exc: ValidationError, prefix: str = "") -> str:
+def describe_validation_error(exc: ValidationError, prefix: str = "", first: bool = False) -> str:
+    """``exc`` as ``loc: message`` parts joined by ``; `` (only the first with ``first``).
+
+    Locations quote keys from the user's file; :class:`ConfigError` escapes any control
+    characters they hold, so the message stays on one line.
+    """
     parts = []
-    for err in exc.errors():
+    for err in exc.errors()[:1] if first else exc.errors():
         loc = ".".join(str(p) for p in err["loc"] if p != "__root__")
         loc = f"{prefix}{loc}" if loc else prefix.rstrip(".") or "config"
         msg = err["msg"].removeprefix("Value error, ")
         if err["type"] == "extra_forbidden":
             msg = "unknown key"
         parts.append(f"{loc}: {msg}")
-    return "invalid config: " + "; ".join(parts)
+    return "; ".join(parts)
 
 
 def validate(model: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
@@ -74,7 +79,7 @@ def validate(model: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
     try:
         return model.model_validate(dict(data))
     except ValidationError as exc:
-        raise ConfigError(_format_validation_error(exc, prefix)) from None
+        raise ConfigError("invalid config: " + describe_validation_error(exc, prefix)) from None
 
 
 def merge_overrides(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import hashlib
+import os
 import subprocess
 import sys
 import textwrap
@@ -13,6 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from latentdrive.env import make_env
+
+
+def examples(n: int) -> int:
+    """How many examples a property test draws: ``n`` by default, 20x under ``make fuzz``."""
+    return n * 20 if os.environ.get("HYPOTHESIS_PROFILE") == "explore" else n
 
 
 def rollout_digest(scenario: str, seed: int = 0, steps: int = 6, **overrides: object) -> str:

@@ -10,6 +10,7 @@ import stat
 from pathlib import Path
 
 import pytest
+from helpers import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
@@ -159,7 +160,7 @@ def test_a_symlink_out_of_the_folder_is_refused(tmp_path: Path) -> None:
             confined(root, name, source=root / "manifest.json")
 
 
-@settings(max_examples=200, deadline=None)
+@settings(max_examples=examples(200), deadline=None)
 @given(name=st.text(max_size=30) | st.sampled_from(["..", "/", "./../x", "a/./b", "//x"]))
 def test_a_followed_name_always_stays_inside(tmp_path_factory: pytest.TempPathFactory, name: str) -> None:
     root = tmp_path_factory.getbasetemp() / "confined-root"

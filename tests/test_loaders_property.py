@@ -11,6 +11,7 @@ from typing import Any
 
 import pytest
 import yaml
+from helpers import examples
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -24,7 +25,7 @@ JSON = st.recursive(
     lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=10), inner, max_size=4),
     max_leaves=12,
 )
-QUICK = settings(max_examples=80, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+QUICK = settings(max_examples=examples(80), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 
 
 def _one_line(exc: BaseException, path: Path) -> None:
@@ -121,7 +122,7 @@ def test_read_run_config_returns_a_valid_train_section_or_one_line(data: st.Data
 
 
 # capsys is read (and so emptied) by every example.
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(25), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(backend=st.sampled_from(["fast", "highway"]), batch=st.integers(-(10**6), 0) | st.just(1),
        steps=st.integers(-(10**6), 0) | st.just(1))
 def test_bench_refuses_non_positive_sizes_before_any_work(capsys: pytest.CaptureFixture[str], backend: str,
@@ -131,3 +132,14 @@ def test_bench_refuses_non_positive_sizes_before_any_work(capsys: pytest.Capture
     rc = main(["bench", "--backend", backend, "--batch-size", str(batch), "--steps", str(steps), "--scenarios", "merge"])
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and err[0].startswith("latentdrive: error: --")
+
+
+def test_a_control_character_in_a_key_stays_on_one_line(tmp_path: Path) -> None:
+    # Regression: a report whose `runs` held the key "\n" printed a two-line error.
+    report = _valid_report()
+    report["runs"] = {"\n": None}
+    (tmp_path / "report.json").write_text(json.dumps(report))
+    with pytest.raises(ConfigError) as info:
+        read_report(tmp_path)
+    _one_line(info.value, tmp_path / "report.json")
+    assert "runs.\\n" in str(info.value)

@@ -39,7 +39,7 @@ from safetensors.torch import load as st_load
 from safetensors.torch import save as st_save
 from torch import nn
 
-from latentdrive.errors import LatentDriveError
+from latentdrive.errors import LatentDriveError, first_line
 from latentdrive.fileio import atomic_write_bytes
 
 __all__ = [
@@ -121,10 +121,6 @@ def _digest(tensors: Mapping[str, torch.Tensor], state: str | None) -> str:
         h.update(b"\x00state|" + state.encode("utf-8"))
     return h.hexdigest()
 
-
-def _one_line(text: object) -> str:
-    lines = str(text).strip().splitlines()
-    return lines[0] if lines else type(text).__name__
 
 
 # ---------------------------------------------------------------------------------------
@@ -225,11 +221,11 @@ def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str
             meta = _metadata(header_bytes, fail)
             data = head + header_bytes + f.read()
     except OSError as exc:
-        raise fail(f"cannot read checkpoint ({exc.strerror or _one_line(exc)})") from None
+        raise fail(f"cannot read checkpoint ({exc.strerror or first_line(exc)})") from None
     try:
         tensors = st_load(data)
     except Exception as exc:  # the safetensors parser raises its own error types
-        raise fail(f"corrupt checkpoint ({_one_line(exc)})") from None
+        raise fail(f"corrupt checkpoint ({first_line(exc)})") from None
     state_text = meta.get("state")
     if not isinstance(state_text, str):
         raise fail("corrupt checkpoint (no state metadata)")
@@ -353,7 +349,7 @@ def load_checkpoint(
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             if isinstance(exc, CheckpointError):
                 raise
-            raise fail(f"corrupt checkpoint (unreadable optimizer state: {_one_line(exc)})") from None
+            raise fail(f"corrupt checkpoint (unreadable optimizer state: {first_line(exc)})") from None
 
     if torch_generator is not None and "rng/torch" not in tensors:
         raise fail("checkpoint holds no torch generator state")
@@ -370,7 +366,7 @@ def load_checkpoint(
         if numpy_generator is not None:
             numpy_generator.bit_generator.state = _from_json(state["numpy_rng"])
     except (RuntimeError, ValueError, TypeError, KeyError) as exc:
-        raise fail(f"cannot restore checkpoint ({_one_line(exc)})") from None
+        raise fail(f"cannot restore checkpoint ({first_line(exc)})") from None
 
     extra_tensors = {k[len("extra/"):]: v for k, v in tensors.items() if k.startswith("extra/")}
     return CheckpointInfo(

@@ -15,7 +15,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
-from latentdrive.config import ConfigError
+from latentdrive.config import ConfigError, describe_validation_error
 from latentdrive.fileio import MAX_JSON_BYTES, confined, read_json, read_text
 
 __all__ = ["MAX_METRICS_BYTES", "epoch_rows", "read_report"]
@@ -89,10 +89,7 @@ def read_report(out: Path) -> dict[str, Any]:
     try:
         report = _Report.model_validate(data)
     except ValidationError as exc:
-        err = exc.errors()[0]
-        loc = ".".join(str(p) for p in err["loc"]) or "report"
-        msg = err["msg"].removeprefix("Value error, ")
-        raise ConfigError(f"{path}: not a BNN study report ({loc}: {msg})") from None
+        raise ConfigError(f"{path}: not a BNN study report ({describe_validation_error(exc, first=True)})") from None
     for name in report.runs:
         confined(out / "runs", name, source=path, error=ConfigError)
     return report.model_dump(by_alias=True)

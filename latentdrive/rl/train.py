@@ -28,6 +28,7 @@ from safetensors.numpy import save as np_save
 
 from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from latentdrive.config import ConfigError, config_hash
+from latentdrive.errors import first_line
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined
@@ -202,15 +203,11 @@ class Learner:
         except FileNotFoundError:
             raise CheckpointError(f"{path}: missing; the run cannot resume without its replay") from None
         except Exception as exc:  # the safetensors parser raises its own error types
-            raise CheckpointError(f"{path}: unusable replay ({_one_line(exc)})") from None
+            raise CheckpointError(f"{path}: unusable replay ({first_line(exc)})") from None
         if self.replay.added != replay_added:
             raise CheckpointError(f"{path}: replay does not belong to the checkpoint (written by another save)")
         return segment + 1
 
-
-def _one_line(exc: BaseException) -> str:
-    lines = str(exc).strip().splitlines()
-    return lines[0] if lines else type(exc).__name__
 
 
 def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]:

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from helpers import examples
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from safetensors.torch import save_file
@@ -302,7 +303,7 @@ def saved(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return save_checkpoint(path, *_trained(steps=1), step=1, epoch=1, config={"a": 1}, extra={"b": [1, 2]})
 
 
-@settings(max_examples=40, deadline=None)
+@settings(max_examples=examples(40), deadline=None)
 @given(data=st.data())
 def test_any_damage_is_an_error_or_changes_nothing(saved: Path, data: st.DataObject) -> None:
     """Flipped bytes anywhere in the file: a CheckpointError, or (a flip that turns header

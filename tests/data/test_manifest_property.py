@@ -12,6 +12,7 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
+from helpers import examples
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
@@ -68,7 +69,7 @@ def _workspace(collected: Path) -> Iterator[Path]:
         yield root
 
 
-@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(60), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(data=st.data())
 def test_any_one_change_to_a_manifest_is_survived(collected: Path, data: st.DataObject) -> None:
     manifest = json.loads((collected / MANIFEST).read_text())
@@ -84,7 +85,7 @@ def test_any_one_change_to_a_manifest_is_survived(collected: Path, data: st.Data
         _check_opens_or_fails_cleanly(root, manifest)
 
 
-@settings(max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(40), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(name=NAMES)
 def test_a_renamed_shard_never_leads_outside(collected: Path, name: str) -> None:
     manifest = json.loads((collected / MANIFEST).read_text())
