@@ -14,6 +14,7 @@ from collections.abc import Sequence
 from latentdrive.config import ConfigError, LatentDriveError, parse_override_args
 from latentdrive.data.cli import add_collect_parser
 from latentdrive.experiments.policy_cli import add_policy_parsers
+from latentdrive.experiments.reproduce_cli import add_reproduce_parsers
 from latentdrive.fileio import atomic_write_text, output_problem
 
 __all__ = ["main"]
@@ -311,6 +312,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.set_defaults(func=_cmd_bnn_study)
 
     add_policy_parsers(sub)
+    add_reproduce_parsers(sub)
 
     s = sub.add_parser("figures", help="redraw the figures of a finished study")
     s.add_argument("kind", choices=["bnn"], help="which study")

@@ -7,7 +7,7 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["EpisodeOutcome"]
+__all__ = ["EpisodeOutcome", "outcomes_from_json", "outcomes_to_json"]
 
 
 class EpisodeOutcome(NamedTuple):
@@ -56,3 +56,32 @@ class EpisodeOutcome(NamedTuple):
     def timed_out(self) -> bool:
         """Failed without a crash: the mission was not completed in time."""
         return self.failed and not self.crashed
+
+
+def outcomes_to_json(outcomes: list[EpisodeOutcome]) -> list[dict[str, object]]:
+    """Outcomes as JSON values (arrays as lists), for files a study writes."""
+    return [{**o._asdict(), "agent_crashed": o.agent_crashed.tolist(), "agent_arrived": o.agent_arrived.tolist(),
+             "agent_return": o.agent_return.tolist(), "mean_speed": float(o.mean_speed)} for o in outcomes]
+
+
+def outcomes_from_json(items: object) -> list[EpisodeOutcome]:
+    """The inverse of :func:`outcomes_to_json`; raises ``ValueError`` naming the first bad entry."""
+    if not isinstance(items, list):
+        raise ValueError("outcomes: expected a list")
+    out: list[EpisodeOutcome] = []
+    for i, d in enumerate(items):
+        try:
+            if not isinstance(d, dict) or set(d) != set(EpisodeOutcome._fields):
+                raise ValueError("wrong fields")
+            crashed = np.asarray(d["agent_crashed"], dtype=np.bool_)
+            arrived = np.asarray(d["agent_arrived"], dtype=np.bool_)
+            ret = np.asarray(d["agent_return"], dtype=np.float64)
+            if crashed.ndim != 1 or crashed.shape != arrived.shape or crashed.shape != ret.shape:
+                raise ValueError("per-agent arrays differ in shape")
+            out.append(EpisodeOutcome(scenario=str(d["scenario"]), env_index=int(d["env_index"]),
+                                      episode_index=int(d["episode_index"]), seed=int(d["seed"]), steps=int(d["steps"]),
+                                      agent_crashed=crashed, agent_arrived=arrived, agent_return=ret,
+                                      mean_speed=float(d["mean_speed"]), traffic_crashed=bool(d["traffic_crashed"])))
+        except (TypeError, ValueError) as exc:
+            raise ValueError(f"outcome {i}: {exc}") from None
+    return out

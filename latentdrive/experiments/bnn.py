@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -58,8 +58,10 @@ __all__ = [
     "figures_from_study",
     "load_study_config",
     "read_study_config",
+    "report_bnn_runs",
     "run_bnn_study",
     "run_name",
+    "study_runs",
     "train_on_dataset",
 ]
 
@@ -272,16 +274,26 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
     atomic_write_text(out / STUDY_CONFIG, json.dumps(cfg.model_dump(mode="json"), indent=1) + "\n")
     say(f"[1/4] dataset -> {out / 'dataset'}")
     collect(cfg.collect, out / "dataset", progress=progress)
-    ds = ShardDataset(out / "dataset")
-    _, val_ids = _split(ds, cfg.val_fraction, cfg.train.seed)
-
-    runs = _study_runs(cfg)
+    runs = study_runs(cfg)
     for i, (name, d, lam) in enumerate(runs):
         say(f"[2/4] training {name} ({i + 1}/{len(runs)}) -> {out / 'runs' / name}")
         train_on_dataset(out / "dataset", out / "runs" / name, cfg.train.replace(lambda_distance=lam), d,
                          channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=progress)
 
     say("[3/4] evaluating on held-out episodes")
+    return report_bnn_runs(cfg, out / "dataset", {name: (out / "runs" / name, d, lam) for name, d, lam in runs}, out,
+                           say=say)
+
+
+def report_bnn_runs(cfg: BNNStudyConfig, dataset: Path, runs: Mapping[str, tuple[Path, int, float]], out: Path,
+                    say: Callable[[str], None] = print) -> dict[str, Any]:
+    """Evaluate trained runs on the dataset's held-out episodes; writes ``out/report.json``,
+    ``out/report.md`` and ``out/figures``; returns the report.
+
+    ``runs`` maps each run's name to its directory, latent size and λ.
+    """
+    ds = ShardDataset(dataset)
+    _, val_ids = _split(ds, cfg.val_fraction, cfg.train.seed)
     data = held_out(ds, val_ids, cfg.eval_samples, seed=cfg.train.seed)
     names, raw = distance_matrix(data.by_scenario(raw_features(data.noisy, cfg.raw_pool)))
     report: dict[str, Any] = {
@@ -290,10 +302,11 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
         "noisy_input_vehicles": input_vehicle_recovery(ds, val_ids, cfg.train.batch_size),
         "runs": {},
     }
-    for name, d, lam in runs:
+    for name, (run, d, lam) in runs.items():
         report["runs"][name] = {"latent_dim": d, "lambda": lam,
-                                **evaluate_run(out / "runs" / name, data, ds, val_ids, cfg.train.batch_size)}
+                                **evaluate_run(run, data, ds, val_ids, cfg.train.batch_size)}
     report = _json_safe(report)
+    out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "report.json", json.dumps(report, indent=1, allow_nan=False) + "\n")
     atomic_write_text(out / "report.md", format_report(report))
 
@@ -301,11 +314,11 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
     # Imported here: matplotlib is needed only once figures are drawn, not by train-bnn.
     from latentdrive.experiments.bnn_figures import write_bnn_figures
 
-    write_bnn_figures(out, data, report, cfg.train.seed)
+    write_bnn_figures(out / "figures", {name: run for name, (run, _, _) in runs.items()}, data, report, cfg.train.seed)
     return report
 
 
-def _study_runs(cfg: BNNStudyConfig) -> list[tuple[str, int, float]]:
+def study_runs(cfg: BNNStudyConfig) -> list[tuple[str, int, float]]:
     """``(name, latent size, λ)`` of every run of the study."""
     runs = [(run_name(d), d, 0.0) for d in cfg.latent_dims]
     return runs + [(run_name(max(cfg.latent_dims), lam), max(cfg.latent_dims), lam) for lam in cfg.lambdas]
@@ -324,7 +337,7 @@ def _check_study_target(cfg: BNNStudyConfig, out: Path) -> None:
         split = {"train_episodes": train_ids.tolist(), "val_episodes": val_ids.tolist()}
     except DatasetError:  # not collected (completely) yet: no run can have trained on it
         pass
-    for name, d, lam in _study_runs(cfg):
+    for name, d, lam in study_runs(cfg):
         run = out / "runs" / name
         check_run_dir(run, cfg.train.replace(lambda_distance=lam), _model_config(d, cfg.channels, None, sample_shape),
                       resume=True)
@@ -363,8 +376,8 @@ def figures_from_study(out: str | Path) -> list[Path]:
     _, val_ids = _split(ds, cfg.val_fraction, cfg.train.seed)
     from latentdrive.experiments.bnn_figures import write_bnn_figures
 
-    return write_bnn_figures(out, held_out(ds, val_ids, cfg.eval_samples, seed=cfg.train.seed), report,
-                             cfg.train.seed)
+    return write_bnn_figures(out / "figures", {name: out / "runs" / name for name in report["runs"]},
+                             held_out(ds, val_ids, cfg.eval_samples, seed=cfg.train.seed), report, cfg.train.seed)
 
 
 def _matrix_md(names: list[str], m: list[list[float]]) -> str:

@@ -4,6 +4,7 @@ latent_rep), plus the scenario distance matrices the paper names but never shows
 from __future__ import annotations
 
 import io
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -34,12 +35,12 @@ def _save(fig: plt.Figure, path: Path) -> Path:
     return atomic_write_bytes(path, buf.getvalue())
 
 
-def loss_curves(out: Path, run_names: list[str], input_recall: float | None = None) -> Path:
+def loss_curves(figures: Path, runs: Mapping[str, Path], input_recall: float | None = None) -> Path:
     """Per epoch and run: training and held-out reconstruction loss (left), and the share of
     held-out vehicles recovered (right; ``input_recall``, the noisy input's own, as a line)."""
     fig, (ax, ax_r) = plt.subplots(1, 2, figsize=(12, 4))
-    for i, name in enumerate(run_names):
-        rows = epoch_rows(out / "runs" / name)
+    for i, (name, run) in enumerate(runs.items()):
+        rows = epoch_rows(run)
         epochs = [int(r["epoch"]) + 1 for r in rows]
         color = f"C{i}"
         ax.plot(epochs, [float(r["recon"]) for r in rows], color=color, label=f"{name} train")
@@ -58,7 +59,7 @@ def loss_curves(out: Path, run_names: list[str], input_recall: float | None = No
     ax_r.set_ylim(0, 1)
     ax_r.legend(fontsize=7)
     ax_r.set_title("Vehicles recovered: half their peak value within one cell")
-    return _save(fig, out / "figures" / "bnn_loss.png")
+    return _save(fig, figures / "bnn_loss.png")
 
 
 def _channels_of(recon: np.ndarray) -> np.ndarray:
@@ -66,14 +67,15 @@ def _channels_of(recon: np.ndarray) -> np.ndarray:
     return np.stack([recon[0, 0, -1], recon[0, 1, -1], recon[1, 0, -1], recon[2, 0, -1]])
 
 
-def reconstructions(out: Path, data: HeldOut, run_names: list[str], notes: dict[str, str] | None = None) -> Path:
+def reconstructions(figures: Path, data: HeldOut, runs: Mapping[str, Path], notes: dict[str, str] | None = None) -> Path:
     """Ground truth, noisy input and each run's reconstruction for a roundabout and an
     intersection; ``notes`` adds a line under a row's name (e.g. its vehicle recall)."""
     shown = [s for s in SHOWN if data.first(s) >= 0] or [data.names[int(data.scenario[0])]]
     notes = notes or {}
+    run_names = list(runs)
     rows = ["ground truth", *(f"{n}\n{notes[n]}" if n in notes else n for n in ["noisy input", *run_names])]
     fig, axes = plt.subplots(len(rows), 4 * len(shown), figsize=(3.2 * 4 * len(shown), 1.9 * len(rows)), squeeze=False)
-    models = {name: load_trained_bottleneck(out / "runs" / name) for name in run_names}
+    models = {name: load_trained_bottleneck(run) for name, run in runs.items()}
     for k, scen in enumerate(shown):
         i = data.first(scen)
         images = [data.clean[i, :, -1], data.noisy[i, :, -1]]
@@ -91,13 +93,13 @@ def reconstructions(out: Path, data: HeldOut, run_names: list[str], notes: dict[
                 if 4 * k + c == 0:
                     ax.set_ylabel(rows[r], fontsize=9)
     fig.suptitle("Reconstruction from held-out noisy input, latest frame (the paper's reconstruction figure)")
-    return _save(fig, out / "figures" / "bnn_reconstruction.png")
+    return _save(fig, figures / "bnn_reconstruction.png")
 
 
-def latents_before_after(out: Path, data: HeldOut, run_name: str, train_seed: int) -> Path:
+def latents_before_after(figures: Path, data: HeldOut, run_name: str, run: Path, train_seed: int) -> Path:
     """Latents (3 pairs × d) of a roundabout and an intersection, at initialization and
     after training; ``train_seed`` is the seed the run was trained with."""
-    trained = load_trained_bottleneck(out / "runs" / run_name)
+    trained = load_trained_bottleneck(run)
     # The initial weights are those train_bnn drew: the same seed, the same constructor.
     torch.manual_seed(train_seed)
     initial = BottleneckNetwork(trained.cfg).eval()
@@ -116,10 +118,10 @@ def latents_before_after(out: Path, data: HeldOut, run_name: str, train_seed: in
     axes[-1, 0].set_xlabel("latent unit")
     axes[-1, 1].set_xlabel("latent unit")
     fig.suptitle(f"Latent representation ({run_name})")
-    return _save(fig, out / "figures" / "bnn_latents.png")
+    return _save(fig, figures / "bnn_latents.png")
 
 
-def distance_matrices(out: Path, report: dict[str, Any]) -> Path:
+def distance_matrices(figures: Path, report: dict[str, Any]) -> Path:
     """The 5×5 scenario distance (MMD²) in the raw-input space and in each run's latent space."""
     panels = [("raw input (pooled)", report["raw_scenarios"], np.array(report["raw_distance"]))]
     panels += [(f"latent {n}", r["latent_scenarios"], np.array(r["latent_distance"])) for n, r in report["runs"].items()]
@@ -135,7 +137,7 @@ def distance_matrices(out: Path, report: dict[str, Any]) -> Path:
         off = m[~np.eye(len(m), dtype=bool)].mean() if len(m) > 1 else float("nan")
         ax.set_title(f"{title}\nmean off-diagonal {off:.3f}", fontsize=9)
     fig.suptitle("Scenario distance: MMD² between scenarios' distributions")
-    return _save(fig, out / "figures" / "bnn_distance.png")
+    return _save(fig, figures / "bnn_distance.png")
 
 
 def _recall_notes(report: dict[str, Any]) -> dict[str, str]:
@@ -149,16 +151,18 @@ def _recall_notes(report: dict[str, Any]) -> dict[str, str]:
     return notes
 
 
-def write_bnn_figures(out: str | Path, data: HeldOut, report: dict[str, Any], train_seed: int) -> list[Path]:
-    """Every figure of the study, into ``out/figures`` (``train_seed``: the seed its runs
-    were trained with, which drew their initial weights)."""
-    out = Path(out)
+def write_bnn_figures(figures: str | Path, runs: Mapping[str, Path], data: HeldOut, report: dict[str, Any],
+                      train_seed: int) -> list[Path]:
+    """Every figure of the study, into ``figures``; ``runs`` maps each of the report's runs
+    to its directory (``train_seed``: the seed its runs were trained with, which drew their
+    initial weights)."""
+    figures = Path(figures)
     names = list(report["runs"])
     plain = [n for n in names if report["runs"][n]["lambda"] == 0]
     largest = max(plain, key=lambda n: report["runs"][n]["latent_dim"])
     return [
-        loss_curves(out, names, (report.get("noisy_input_vehicles") or {}).get("vehicle_recall")),
-        reconstructions(out, data, plain, _recall_notes(report)),
-        latents_before_after(out, data, largest, train_seed),
-        distance_matrices(out, report),
+        loss_curves(figures, {n: runs[n] for n in names}, (report.get("noisy_input_vehicles") or {}).get("vehicle_recall")),
+        reconstructions(figures, data, {n: runs[n] for n in plain}, _recall_notes(report)),
+        latents_before_after(figures, data, largest, runs[largest], train_seed),
+        distance_matrices(figures, report),
     ]

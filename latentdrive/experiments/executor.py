@@ -1,0 +1,189 @@
+"""Run a study graph's unfinished steps in local worker processes.
+
+Each step runs in a fresh process (so its peak memory is its own, and a crash or a leak
+stays with it), started from a fork server that has already imported the step functions.
+Ready steps start in order of their longest remaining chain of estimated costs, so long
+chains (data → BNN → latent policies) begin first and short steps fill the gaps.
+
+A failed step is reported with its error's first line; the steps that do not depend on it
+still run, so one bad step costs only its descendants. An interrupt cancels what has not
+started; a step killed mid-way leaves no ``done.json`` and runs again (continuing where it
+can) next time.
+"""
+
+from __future__ import annotations
+
+import math
+import multiprocessing as mp
+import resource
+import shutil
+import time
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from tqdm.auto import tqdm
+
+from latentdrive.errors import LatentDriveError, first_line
+from latentdrive.experiments.graph import Graph, Step, StepRecord
+
+__all__ = ["StepFailed", "StepKind", "execute_step", "run_local"]
+
+StepFn = Callable[[Mapping[str, Any], Mapping[str, Path], Path], dict[str, Any]]
+
+
+@dataclass(frozen=True)
+class StepKind:
+    """How to run one kind of step.
+
+    Attributes:
+        run: ``run(config, inputs, folder) -> summary`` writes the step's files into
+            ``folder`` and returns a small JSON summary. Must be a module-level function
+            (it is sent to worker processes by reference).
+        resumable: a folder left by an interrupted attempt is continued (``run`` resumes
+            from what it finds); otherwise it is cleared first.
+        cpus: cores the step keeps busy (a request for cluster schedulers).
+        gpu: the step can use a GPU when one is there.
+    """
+
+    run: StepFn
+    resumable: bool = False
+    cpus: int = 1
+    gpu: bool = False
+
+
+class StepFailed(LatentDriveError):
+    """Steps of a study failed; the message names each with its error."""
+
+
+def execute_step(kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
+                 write_record: Callable[[StepRecord], None]) -> StepRecord:
+    """Run one step into ``folder`` and record it; this is what a worker process does."""
+    t0 = time.perf_counter()
+    if folder.exists() and not kind.resumable:
+        shutil.rmtree(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    for role, path in inputs.items():
+        if not path.is_dir():
+            raise LatentDriveError(f"step {step.name}: its input {role} is missing ({path})")
+    summary = _json_safe(kind.run(step.config, inputs, folder))
+    # Linux reports kilobytes; each step has a process of its own, so this peak is the step's.
+    peak_mb = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    rec = StepRecord(name=step.name, kind=step.kind, key=key, summary=summary,
+                     wall_s=round(time.perf_counter() - t0, 2), peak_rss_mb=round(peak_mb, 1))
+    write_record(rec)
+    return rec
+
+
+def _json_safe(value: Any) -> Any:
+    """``value`` with NaN and infinities as None, so a summary always has a JSON record."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _ranks(graph: Graph, names: Sequence[str]) -> dict[str, float]:
+    """Each step's cost plus the costliest chain of pending steps that waits on it."""
+    pending = set(names)
+    dependents: dict[str, list[str]] = {n: [] for n in names}
+    for n in names:
+        for dep in graph.steps[n].inputs.values():
+            if dep in pending:
+                dependents[dep].append(n)
+    rank: dict[str, float] = {}
+    for n in reversed([m for m in graph.order if m in pending]):
+        rank[n] = graph.steps[n].cost + max((rank[d] for d in dependents[n]), default=0.0)
+    return rank
+
+
+def run_local(graph: Graph, out: Path, kinds: Mapping[str, StepKind], workers: int = 1,
+              preload: Sequence[str] = (), progress: bool = True,
+              on_done: Callable[[StepRecord], None] | None = None) -> dict[str, StepRecord]:
+    """Run every unfinished step of ``graph`` with ``workers`` processes; returns all records.
+
+    Raises:
+        StepFailed: after every runnable step has run, naming the steps that failed.
+    """
+    if workers < 1:
+        raise LatentDriveError(f"--workers must be at least 1, got {workers}")
+    for s in graph.steps.values():
+        if s.kind not in kinds:
+            raise LatentDriveError(f"study graph: step {s.name!r} has unknown kind {s.kind!r}")
+    records = {n: r for n in graph.order if (r := graph.record(out, n)) is not None}
+    todo = [n for n in graph.order if n not in records]
+    rank = _ranks(graph, todo)
+    failed: dict[str, str] = {}
+    blocked: set[str] = set()
+    running: dict[Future[StepRecord], str] = {}
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(list(preload))
+    bar = tqdm(total=round(sum(graph.steps[n].cost for n in todo)), disable=not progress or not todo,
+               unit="s", bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}<{remaining} {postfix}",
+               dynamic_ncols=True)
+    done_count = len(records)
+
+    def describe() -> None:
+        bar.set_description_str(f"study: {done_count}/{len(graph.order)} steps")
+        names = sorted(running.values())
+        bar.set_postfix_str(("running " + ", ".join(names)) if names else "", refresh=True)
+
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1) as pool:
+        try:
+            while todo or running:
+                ready = [n for n in todo if all(d in records for d in graph.steps[n].inputs.values())]
+                for n in sorted(ready, key=lambda m: -rank[m])[: workers - len(running)]:
+                    todo.remove(n)
+                    step = graph.steps[n]
+                    fut = pool.submit(execute_step, kinds[step.kind], step, graph.keys[n], graph.inputs(out, n),
+                                      graph.folder(out, n), _RecordWriter(graph, out))
+                    running[fut] = n
+                describe()
+                if not running:
+                    break  # what is left waits on failed steps
+                finished, _ = wait(running, return_when=FIRST_COMPLETED)
+                for fut in finished:
+                    n = running.pop(fut)
+                    bar.update(round(graph.steps[n].cost))
+                    try:
+                        records[n] = fut.result()
+                        done_count += 1
+                        if on_done is not None:
+                            on_done(records[n])
+                    except Exception as exc:  # reported with the step's name; the others go on
+                        failed[n] = first_line(exc)
+                        bar.write(f"step {n} failed: {failed[n]}")
+                        blocked.update(_descendants(graph, n))
+                        todo = [m for m in todo if m not in blocked]
+        except KeyboardInterrupt:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+        finally:
+            bar.close()
+    if failed:
+        lost = f"; {len(blocked)} steps that need them did not run" if blocked else ""
+        raise StepFailed(f"{len(failed)} step(s) failed: " + "; ".join(f"{n}: {e}" for n, e in failed.items()) + lost)
+    return records
+
+
+class _RecordWriter:
+    """Writes a finished step's ``done.json`` from the worker (picklable, unlike a closure)."""
+
+    def __init__(self, graph: Graph, out: Path) -> None:
+        self.graph, self.out = graph, out
+
+    def __call__(self, rec: StepRecord) -> None:
+        self.graph.write_record(self.out, rec)
+
+
+def _descendants(graph: Graph, name: str) -> set[str]:
+    found: set[str] = set()
+    for n in graph.order:
+        if any(d == name or d in found for d in graph.steps[n].inputs.values()):
+            found.add(n)
+    return found

@@ -1,0 +1,112 @@
+"""``latentdrive reproduce``: run the study's graph, then gather its results and write its report.
+
+``OUT/study.json`` holds the config the study was last run with; ``OUT/steps/`` every
+step's folder; ``OUT/results.json``, ``OUT/report.md`` and ``OUT/figures/`` what the
+report shows. ``latentdrive report OUT`` rebuilds the last three from the finished steps.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+from latentdrive.config import ConfigError, validate
+from latentdrive.experiments.executor import run_local
+from latentdrive.experiments.graph import Graph, StepRecord
+from latentdrive.experiments.results import gather_results
+from latentdrive.experiments.study import ReproduceConfig, build_graph
+from latentdrive.experiments.study_report import write_report
+from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
+from latentdrive.runlock import dir_lock
+
+__all__ = ["read_study", "rebuild_report", "run_study"]
+
+STUDY = "study.json"
+#: Imported once by the worker processes' fork server, so each step starts in milliseconds.
+PRELOAD = ("latentdrive.experiments.steps",)
+
+
+def _environment() -> dict[str, Any]:
+    import numpy as np
+    import torch
+
+    return {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
+            "machine": platform.machine(), "cpus": _cpus(), "cuda": torch.cuda.is_available(),
+            "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
+
+
+def _cpus() -> int:
+    import os
+
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset: str = "", progress: bool = True,
+              say: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run (or resume) every unfinished step, then write results.json, report.md and figures."""
+    from latentdrive.experiments.steps import STEP_KINDS
+
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder")
+    graph = build_graph(cfg)
+    out.mkdir(parents=True, exist_ok=True)
+    with dir_lock(out, "reproduce"):
+        pending = graph.pending(out)
+        say(f"study: {len(graph.order)} steps, {len(graph.order) - len(pending)} already finished; "
+            f"{workers} worker(s) -> {out}")
+        atomic_write_text(out / STUDY, json.dumps({"preset": preset, "config": cfg.model_dump(mode="json")},
+                                                  indent=1) + "\n")
+        t0 = time.perf_counter()
+        run_local(graph, out, STEP_KINDS, workers=workers, preload=PRELOAD, progress=progress)
+        wall = time.perf_counter() - t0
+        return _report(cfg, graph, out, preset, {"workers": workers, "wall_s": round(wall, 1)}, say)
+
+
+def _report(cfg: ReproduceConfig, graph: Graph, out: Path, preset: str, run: dict[str, Any],
+            say: Callable[[str], None]) -> dict[str, Any]:
+    records: dict[str, StepRecord] = {}
+    for n in graph.order:
+        rec = graph.record(out, n)
+        if rec is None:
+            raise ConfigError(f"{out}: step {n} has not finished; run `latentdrive reproduce {out}` first")
+        records[n] = rec
+    results = gather_results(cfg, graph, out, records)
+    results["meta"] = {"preset": preset, "environment": _environment(), "last_run": run,
+                       "config": cfg.model_dump(mode="json")}
+    atomic_write_text(out / "results.json", json.dumps(results, indent=1, allow_nan=False) + "\n")
+    summary = write_report(results, out)
+    say(summary)
+    return results
+
+
+def read_study(out: Path) -> tuple[ReproduceConfig, str]:
+    """The config and preset name a study in ``out`` was run with."""
+    path = out / STUDY
+    try:
+        data = read_json(path, limit=MAX_JSON_BYTES, what="study record", error=ConfigError)
+    except FileNotFoundError:
+        raise ConfigError(f"{out}: not a study folder (no {STUDY}); run `latentdrive reproduce {out}`") from None
+    if not isinstance(data, dict) or not isinstance(data.get("config"), dict):
+        raise ConfigError(f"{path}: not a study record")
+    try:
+        return validate(ReproduceConfig, data["config"]), str(data.get("preset", ""))
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
+def rebuild_report(out: str | Path, say: Callable[[str], None] = print) -> dict[str, Any]:
+    """``latentdrive report OUT``: results, report and figures again from the finished steps."""
+    out = Path(out)
+    cfg, preset = read_study(out)
+    previous: dict[str, Any] = {}
+    try:
+        old = read_json(out / "results.json", limit=MAX_JSON_BYTES, what="results", error=ConfigError)
+        previous = old.get("meta", {}).get("last_run", {}) if isinstance(old, dict) else {}
+    except FileNotFoundError:
+        pass
+    return _report(cfg, build_graph(cfg), out, preset, previous, say)

@@ -1,0 +1,225 @@
+"""The paper's study as a graph of steps: its config, presets and the graph builder.
+
+Policies (per training seed and representation):
+
+- ``policy/<rep>/<scenario>/s<k>``: trained on one scenario (the oracle of that scenario);
+- ``policy/<rep>/mixed/s<k>``: trained on every scenario;
+- ``policy/<rep>/without-<scenario>/s<k>``: every scenario but one (leave-one-out; the
+  pretraining of transfer learning when the left-out one is the transfer target);
+- ``policy/<rep>/<target>-finetuned/s<k>``: that pretraining fine-tuned on the target;
+- ablations on the mix: ``latent-random``, ``end-to-end`` and ``latent-lam`` (the λ > 0 BNN).
+
+Every policy is evaluated on every scenario (``evaluate/<policy>``), which gives the
+train × test matrices; the reference policies (random, rule, the lookahead planner) on the
+same episodes (``evaluate/ref/<name>``); the mixed policies again on both backends with the
+same few episodes (``cross/<backend>/<policy>``).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pydantic import Field, field_validator, model_validator
+
+from latentdrive.config import (
+    Config,
+    ConfigError,
+    ObservationConfig,
+    load_yaml,
+    merge_overrides,
+    validate,
+)
+from latentdrive.evaluate.planner import PlannerConfig
+from latentdrive.evaluate.policies import REFERENCE_POLICIES
+from latentdrive.experiments.bnn import BNNStudyConfig, run_name, study_runs
+from latentdrive.experiments.graph import Graph, Step
+from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
+from latentdrive.rl.policy import scenario_hashes
+from latentdrive.scenarios import SCENARIOS, RewardConfig, get_spec
+
+__all__ = ["PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config"]
+
+PRESETS = ("tiny", "quick", "paper")
+PRESETS_DIR = Path(__file__).parent / "presets"
+REPS = ("raw", "latent")
+ABLATIONS = ("latent-random", "end-to-end", "latent-lam")
+# Agent-transitions per second on one core (README "Throughput"); only for ETAs and ordering.
+_RATE = {"raw": 30.0, "latent": 230.0, "latent-random": 230.0, "end-to-end": 30.0, "latent-lam": 230.0}
+
+
+class StudyPolicyConfig(Config):
+    """How every policy of the study is trained."""
+
+    steps: int = Field(40_000, ge=1, le=10**10, description="Agent-transitions per policy trained from scratch.")
+    finetune_steps: int = Field(10_000, ge=1, le=10**10, description="Agent-transitions of fine-tuning on the transfer target.")
+    train: dict[str, Any] = Field(default_factory=dict, description="Further train-policy settings for every policy (dqn, vfan, envs, segment, eval_every, eval_episodes, threads, device); checked when the study is built.")
+
+
+class StudyEvalConfig(Config):
+    """The held-out evaluation every policy and reference meets."""
+
+    episodes: int = Field(200, ge=1, le=100_000, description="Episodes per scenario for every policy and reference.")
+    envs: int = Field(16, ge=1, le=1024, description="Environments per scenario; part of the evaluation set's definition.")
+    seed_offset: int = Field(0, ge=0, description="Which disjoint evaluation set (see latentdrive.seeds).")
+    references: tuple[str, ...] = Field(("random", "rule", "plan"), description="Reference policies evaluated on the same episodes.")
+    planner: PlannerConfig = Field(default_factory=PlannerConfig, description="Settings of the 'plan' reference.")
+    cross_backend_episodes: int = Field(0, ge=0, le=10_000, description="Episodes per scenario on which the mixed policies are evaluated on both backends (0: skip; highway-env steps at 2-35 per second).")
+
+    @field_validator("references")
+    @classmethod
+    def _known(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        unknown = [r for r in v if r not in REFERENCE_POLICIES]
+        if unknown:
+            raise ValueError(f"unknown reference policy {unknown[0]!r}: choose from {', '.join(REFERENCE_POLICIES)}")
+        return v
+
+
+class StudyExperimentsConfig(Config):
+    """Which experiments beyond the oracle, mixed and matrix policies the study runs."""
+
+    transfer_target: str | None = Field("roundabout", description="Scenario fine-tuned on after pretraining on the others (none: skip transfer learning).")
+    leave_one_out: bool = Field(True, description="Train on all scenarios but one, test zero-shot on it, for every scenario.")
+    ablations: bool = Field(True, description="latent-random, end-to-end and the λ > 0 BNN on the mix, beside latent and raw.")
+
+
+class ReproduceConfig(Config):
+    """Everything that defines a ``latentdrive reproduce`` study."""
+
+    scenarios: tuple[str, ...] = Field(SCENARIOS, min_length=2, description="The scenarios (presets or spec files); the mix is all of them.")
+    seeds: int = Field(3, ge=1, le=100, description="Training seeds per policy (0 .. seeds-1); evaluation seeds are disjoint from them.")
+    observation: ObservationConfig = Field(default_factory=ObservationConfig, description="VelocityMap of the dataset, the BNNs and every policy.")
+    reward: RewardConfig = Field(default_factory=RewardConfig, description="Reward weights of training (rates do not depend on them).")
+    bnn: BNNStudyConfig = Field(default_factory=BNNStudyConfig, description="The BNN study: its collect.scenarios and observation are the study's.")
+    policy_bnn: int = Field(64, ge=1, description="Latent size d of the λ = 0 BNN that latent policies use; must be one of bnn.latent_dims.")
+    policy: StudyPolicyConfig = Field(default_factory=StudyPolicyConfig, description="Policy training.")
+    evaluate: StudyEvalConfig = Field(default_factory=StudyEvalConfig, description="Evaluation.")
+    experiments: StudyExperimentsConfig = Field(default_factory=StudyExperimentsConfig, description="Optional experiments.")
+
+    @field_validator("scenarios")
+    @classmethod
+    def _scenarios(cls, v: tuple[str, ...]) -> tuple[str, ...]:
+        for name in v:
+            get_spec(name)
+        if len(set(v)) != len(v):
+            raise ValueError("scenarios repeat a name")
+        return v
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ReproduceConfig:
+        if self.policy_bnn not in self.bnn.latent_dims:
+            raise ValueError(f"policy_bnn {self.policy_bnn} is not among bnn.latent_dims {self.bnn.latent_dims}")
+        t = self.experiments.transfer_target
+        if t is not None and t not in self.scenarios:
+            raise ValueError(f"experiments.transfer_target {t!r} is not one of the scenarios")
+        if self.experiments.ablations and not self.bnn.lambdas:
+            raise ValueError("experiments.ablations needs a λ > 0 BNN (bnn.lambdas)")
+        return self
+
+    def policy_config(self, mode: str, scenarios: tuple[str, ...], seed: int, steps: int) -> PolicyTrainConfig:
+        """The train-policy config of one study policy (its BNN and initial weights are inputs)."""
+        data = merge_overrides({"mode": mode, "scenarios": list(scenarios), "seed": seed, "steps": steps,
+                                "observation": self.observation.model_dump(), "reward": self.reward.model_dump()},
+                               self.policy.train)
+        if mode == "latent":
+            data["bnn"] = "(the study's BNN)"  # a placeholder for validation; the step fills in the path
+        try:
+            cfg = validate(PolicyTrainConfig, data)
+        except ConfigError as exc:
+            raise ConfigError(f"policy.train: {exc}") from None
+        check_mission_pays(cfg)
+        return cfg
+
+
+def load_reproduce_config(preset: str, overrides: dict[str, Any] | None = None) -> ReproduceConfig:
+    """A named preset (``tiny``, ``quick``, ``paper``) or a YAML file, with dotted overrides applied."""
+    if preset in PRESETS:
+        data = load_yaml(PRESETS_DIR / f"reproduce-{preset}.yaml")
+    elif preset.endswith((".yaml", ".yml")):
+        data = load_yaml(preset)
+    else:
+        raise ConfigError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)} or a .yaml file")
+    return validate(ReproduceConfig, merge_overrides(data, overrides or {}))
+
+
+def _policy_name(rep: str, train_set: str, seed: int) -> str:
+    return f"policy/{rep}/{train_set}/s{seed}"
+
+
+def build_graph(cfg: ReproduceConfig) -> Graph:
+    """Every step of the study, with its resolved config and inputs."""
+    specs = scenario_hashes(cfg.scenarios)
+    steps: list[Step] = []
+    obs = cfg.observation.model_dump(mode="json")
+    collect = cfg.bnn.collect.model_dump(mode="json")
+    collect.update(scenarios=list(cfg.scenarios), workers=1)
+    collect["env"] = merge_overrides(collect.get("env") or {}, {"observation": obs})
+    bnn_study = cfg.bnn.model_copy(update={"collect": cfg.bnn.collect.model_validate(collect)})
+    samples = cfg.bnn.collect.episodes * len(cfg.scenarios) * 40
+    steps.append(Step("dataset", "dataset", {"collect": collect, "specs": specs}, cost=samples / 300))
+    runs = study_runs(bnn_study)
+    epochs = cfg.bnn.train.pretrain_epochs + cfg.bnn.train.mixed_epochs
+    for name, d, lam in runs:
+        steps.append(Step(f"bnn/{name}", "bnn", {"train": cfg.bnn.train.replace(lambda_distance=lam).model_dump(mode="json"),
+                                                  "latent_dim": d, "channels": list(cfg.bnn.channels),
+                                                  "val_fraction": cfg.bnn.val_fraction},
+                          {"dataset": "dataset"}, cost=epochs * samples / 80))
+    steps.append(Step("bnn/report", "bnn-report",
+                      {"study": bnn_study.model_dump(mode="json"), "runs": {n: [d, lam] for n, d, lam in runs}},
+                      {"dataset": "dataset", **{f"run:{n}": f"bnn/{n}" for n, _, _ in runs}}, cost=30))
+    bnn_for = {"latent": f"bnn/{run_name(cfg.policy_bnn)}", "latent-lam": f"bnn/{runs[-1][0]}"}
+
+    ev = cfg.evaluate
+    eval_cfg = {"scenarios": list(cfg.scenarios), "episodes": ev.episodes, "envs": ev.envs, "backend": "fast",
+                "seed_offset": ev.seed_offset, "observation": obs, "reward": cfg.reward.model_dump(mode="json"),
+                "planner": None}
+    eval_cost = ev.episodes * len(cfg.scenarios) * 0.05
+
+    def policy(rep: str, train_set: str, scenarios: tuple[str, ...], seed: int, steps_: int, init: str | None = None) -> str:
+        mode = "latent" if rep == "latent-lam" else rep
+        pcfg = cfg.policy_config(mode, scenarios, seed, steps_).model_dump(mode="json")
+        pcfg.update(bnn=None, init_from=None)
+        inputs = {"bnn": bnn_for[rep]} if rep in bnn_for else {}
+        if init is not None:
+            inputs["init"] = init
+        name = _policy_name(rep, train_set, seed)
+        steps.append(Step(name, "policy", {"train": pcfg, "specs": specs}, inputs, cost=10 + steps_ / _RATE[rep]))
+        steps.append(Step(f"evaluate/{name}", "evaluate", {"eval": eval_cfg, "specs": specs}, {"policy": name},
+                          cost=eval_cost))
+        return name
+
+    exp = cfg.experiments
+    for seed in range(cfg.seeds):
+        for rep in REPS:
+            for scen in cfg.scenarios:
+                policy(rep, scen, (scen,), seed, cfg.policy.steps)
+            policy(rep, "mixed", cfg.scenarios, seed, cfg.policy.steps)
+            if exp.leave_one_out or exp.transfer_target:
+                for scen in cfg.scenarios:
+                    if exp.leave_one_out or scen == exp.transfer_target:
+                        rest = tuple(s for s in cfg.scenarios if s != scen)
+                        policy(rep, f"without-{scen}", rest, seed, cfg.policy.steps)
+            if exp.transfer_target:
+                t = exp.transfer_target
+                policy(rep, f"{t}-finetuned", (t,), seed, cfg.policy.finetune_steps,
+                       init=_policy_name(rep, f"without-{t}", seed))
+        if exp.ablations:
+            for rep in ABLATIONS:
+                policy(rep, "mixed", cfg.scenarios, seed, cfg.policy.steps)
+
+    for ref in ev.references:
+        planner = ev.planner.model_dump(mode="json") if ref == "plan" else None
+        steps.append(Step(f"evaluate/ref/{ref}", "evaluate", {"eval": {**eval_cfg, "planner": planner}, "reference": ref,
+                                                              "specs": specs},
+                          cost=eval_cost * (40 if ref == "plan" else 1)))
+    if ev.cross_backend_episodes:
+        for backend in ("fast", "highway"):
+            small = {**eval_cfg, "episodes": ev.cross_backend_episodes, "envs": min(ev.envs, ev.cross_backend_episodes),
+                     "backend": backend}
+            per_step = 0.05 if backend == "fast" else 3.0
+            for seed in range(cfg.seeds):
+                for rep in REPS:
+                    name = _policy_name(rep, "mixed", seed)
+                    steps.append(Step(f"cross/{backend}/{name}", "evaluate", {"eval": small, "specs": specs},
+                                      {"policy": name}, cost=ev.cross_backend_episodes * len(cfg.scenarios) * 30 * per_step))
+    return Graph(steps)

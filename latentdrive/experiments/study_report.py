@@ -1,0 +1,189 @@
+"""``OUT/report.md`` from ``results.json``: every table, figure, config and cost of a study."""
+
+from __future__ import annotations
+
+import shutil
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from latentdrive.experiments.study_figures import write_study_figures
+from latentdrive.fileio import atomic_write_text
+
+__all__ = ["summary_table", "write_report"]
+
+
+def _pct(x: float | None) -> str:
+    return "–" if x is None else f"{100 * x:.1f}"
+
+
+def _agg(e: dict[str, Any]) -> str:
+    """``mean [lo, hi]`` in percent; an interval over seeds only when there are several."""
+    if e["lo"] is None:
+        return f"{_pct(e['mean'])} (1 seed)"
+    return f"{_pct(e['mean'])} [{_pct(e['lo'])}, {_pct(e['hi'])}]"
+
+
+def _wilson(e: dict[str, Any]) -> str:
+    return f"{_pct(e['rate'])} [{_pct(e['lo'])}, {_pct(e['hi'])}]"
+
+
+def _p(p: float | None) -> str:
+    return "–" if p is None else (f"{p:.3f}" if p >= 0.001 else "<0.001")
+
+
+def _table(header: list[str], rows: list[list[str]]) -> list[str]:
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header), *("| " + " | ".join(r) + " |" for r in rows)]
+
+
+def summary_table(res: dict[str, Any]) -> str:
+    """The headline as plain text: printed at the end of a study."""
+    refs = res["references"]
+    lines = [f"{'test set':<13}{'raw failure %':>20}{'latent failure %':>20}{'reduction':>10}{'McNemar p':>10}"
+             f"{'random':>8}{'planner':>8}"]
+    for r in res["headline"]:
+        red = r["reduction"]["failure"]
+        lines.append(f"{r['test']:<13}{_agg(r['raw']['failure']):>20}{_agg(r['latent']['failure']):>20}"
+                     f"{'–' if red is None else f'{100 * red:+.0f}%':>10}{_p(r['paired']['failure']['p_value']):>10}"
+                     f"{_pct(refs['random'][r['test']]['failure']['rate']) if 'random' in refs else '–':>8}"
+                     f"{_pct(refs['plan'][r['test']]['failure']['rate']) if 'plan' in refs else '–':>8}")
+    return "\n".join(lines)
+
+
+def _scale(res: dict[str, Any]) -> list[str]:
+    cfg = res["meta"]["config"]
+    seeds, eps = res["seeds"], res["evaluation"]["episodes_per_scenario"]
+    lines = [f"- Scale: {seeds} training seed(s); {cfg['policy']['steps']:,} agent-transitions per policy "
+             f"({cfg['policy']['finetune_steps']:,} of fine-tuning); {eps} evaluation episodes per scenario and policy "
+             f"(mixed test set: {eps * len(res['scenarios'])}); BNNs trained {cfg['bnn']['train']['pretrain_epochs'] + cfg['bnn']['train']['mixed_epochs']} epochs "
+             f"on {cfg['bnn']['collect']['episodes']} episodes per scenario."]
+    if seeds < 3:
+        lines.append("- With fewer than 3 training seeds, intervals over seeds are missing or rest on very few "
+                     "draws: the rates describe these trained policies, not the training method.")
+    lines.append("- Intervals: `[lo, hi]` after a mean over seeds is rliable's 95% stratified-bootstrap interval over "
+                 "training seeds; after a single policy's rate, the 95% Wilson interval over its episodes. McNemar's "
+                 "exact test pairs latent and raw on identical episodes (seed k against seed k, pooled); a large p "
+                 "does not show the two are equal.")
+    lines.append("- Evaluation episodes are drawn from seeds disjoint from every training seed.")
+    return lines
+
+
+def write_report(res: dict[str, Any], out: Path) -> str:
+    """Write ``out/report.md`` and ``out/figures``; return the summary table."""
+    figures = out / "figures"
+    write_study_figures(res, figures)
+    bnn_fig = out / res["bnn"]["figures"]
+    if bnn_fig.is_dir():
+        for f in sorted(bnn_fig.glob("*.png")):
+            shutil.copyfile(f, figures / f.name)
+    meta = res["meta"]
+    refs = res["references"]
+    md = [f"# latentdrive reproduce: {meta['preset'] or 'custom'} preset", "",
+          "The paper's study: a denoising bottleneck (BNN) over stacked VelocityMaps, whose frozen latents "
+          "feed a 3D-convolutional DQN (`latent`), against the same network on the raw maps (`raw`).", "",
+          "## What this run can and cannot show", "", *_scale(res),
+          "- The failure rate (a crash, or the mission not completed in time) is the headline: a policy that "
+          "always brakes rarely crashes. The planner (a lookahead with privileged access to the simulator) is the "
+          "avoidable floor: the failure it still has is hard to avoid for any policy.", "",
+          "## 1. Bottleneck vs baseline", "", "![headline](figures/headline.png)", ""]
+    rows = []
+    for r in res["headline"]:
+        row = [f"{r['train']} → {r['test']}"]
+        for w in ("failure", "crash"):
+            red = r["reduction"][w]
+            row += [_agg(r["raw"][w]), _agg(r["latent"][w]), "–" if red is None else f"{100 * red:+.0f}%",
+                    _p(r["paired"][w]["p_value"])]
+        row += [_pct(refs[ref][r["test"]]["failure"]["rate"]) if ref in refs else "–" for ref in ("random", "rule", "plan")]
+        rows.append(row)
+    md += _table(["trained → tested", "raw failure %", "latent failure %", "fewer failures", "p",
+                  "raw crash %", "latent crash %", "fewer crashes", "p", "random fail %", "rule fail %", "planner fail %"],
+                 rows)
+    md += ["", "The paper reports 47% fewer crashed and failed episodes with the bottleneck ('fewer failures')."]
+    if res.get("vs_random"):
+        md += ["", "Mixed-scenario policies against the random policy on the same episodes (failure, per seed):", ""]
+        md += _table(["policy", "seed", "policy fail %", "random fail %", "McNemar p"],
+                     [[rep, str(k), _pct(t["rate_a"]), _pct(t["rate_b"]), _p(t["p_value"])]
+                      for rep, tests in res["vs_random"].items() for k, t in enumerate(tests)])
+
+    tests = res["tests"]
+    md += ["", "## 2. Train × test", "", "![matrix](figures/matrix.png)", ""]
+    for rep in ("raw", "latent"):
+        md += [f"Failure % of `{rep}` policies (rows: trained on; columns: tested on; mean over seeds):", ""]
+        md += _table(["trained on", *tests], [[tr, *(_pct(v[t]) for t in tests)] for tr, v in res["matrix"][rep].items()])
+        md.append("")
+
+    md += ["## 3. Domain adaptation: the mix policy against each scenario's own", ""]
+    md += _table(["scenario", "raw: mix", "raw: own", "latent: mix", "latent: own"],
+                 [[s, _agg(res["domain_adaptation"]["raw"][s]["mixed"]), _agg(res["domain_adaptation"]["raw"][s]["oracle"]),
+                   _agg(res["domain_adaptation"]["latent"][s]["mixed"]), _agg(res["domain_adaptation"]["latent"][s]["oracle"])]
+                  for s in res["scenarios"]])
+
+    if "transfer" in res:
+        tr = res["transfer"]
+        md += ["", f"## 4. Transfer learning to {tr['target']}", "", "![transfer](figures/transfer.png)", ""]
+        md += _table(["representation", "zero-shot %", "fine-tuned %", "from scratch %"],
+                     [[rep, _agg(tr[rep]["zero_shot"]), _agg(tr[rep]["finetuned"]), _agg(tr[rep]["scratch"])]
+                      for rep in ("raw", "latent")])
+        md += ["", "From scratch trains with the full budget; fine-tuning with its own (smaller) one after pretraining "
+               "on the other scenarios."]
+
+    if "leave_one_out" in res:
+        loo = res["leave_one_out"]
+        md += ["", "## 5. Leave one scenario out (zero-shot)", "", "![loo](figures/leave_one_out.png)", ""]
+        md += _table(["left out", "raw zero-shot %", "raw own %", "latent zero-shot %", "latent own %", "MMD² latent", "MMD² raw"],
+                     [[s, _agg(loo["raw"]["scenarios"][s]["zero_shot"]), _agg(loo["raw"]["scenarios"][s]["oracle"]),
+                       _agg(loo["latent"]["scenarios"][s]["zero_shot"]), _agg(loo["latent"]["scenarios"][s]["oracle"]),
+                       _num(loo["latent"]["scenarios"][s].get("distance_latent")),
+                       _num(loo["latent"]["scenarios"][s].get("distance_raw"))] for s in res["scenarios"]])
+        corr = [f"{rep} policies, {space} distance: Spearman ρ {_num(c['spearman'])} (p {_p(c['p'])}, {c['points']} points)"
+                for rep in ("raw", "latent") for space, c in loo[rep]["distance_vs_zero_shot"].items()]
+        if corr:
+            md += ["", "Does a smaller distance predict better transfer? " + "; ".join(corr) +
+                   ". With one point per scenario this is weak evidence either way."]
+
+    if "ablations" in res:
+        md += ["", "## 6. Ablations on the mix", "", "![ablations](figures/ablations.png)", ""]
+        md += _table(["input", "failure %", "crash %"],
+                     [[v, _agg(e["failure"]), _agg(e["crash"])] for v, e in res["ablations"].items()])
+        md += ["", "`latent-random`: the same frozen encoder with untrained weights; `end-to-end`: the encoder "
+               "trained by the Q-loss alone; `latent-lam`: the λ > 0 BNN."]
+
+    if "cross_backend" in res:
+        md += ["", "## 7. Cross-backend check (mixed policies)", ""]
+        md += _table(["policy", "seed", "fast fail %", "highway-env fail %", "McNemar p", "agree?"],
+                     [[rep, str(k), _wilson(e["fast"]["failure"]), _wilson(e["highway"]["failure"]),
+                       _p(e["paired"]["p_value"]), "yes" if (e["paired"]["p_value"] or 1) >= 0.05 else "NO"]
+                      for rep, per in res["cross_backend"].items() for k, e in enumerate(per)])
+        md += ["", "'Agree' means no significant difference on these episodes, not proof of equality."]
+
+    bnn = res["bnn"]["report"]
+    md += ["", "## 8. Bottleneck network", "", "![loss](figures/bnn_loss.png)", "![recon](figures/bnn_reconstruction.png)",
+           "![latents](figures/bnn_latents.png)", "![distance](figures/bnn_distance.png)", ""]
+    md += _table(["run", "d", "λ", "held-out recon", "vehicle recall", "mean scenario MMD²"],
+                 [[n, str(r["latent_dim"]), f"{r['lambda']:g}", _num(r.get("val_recon"), 4), _pct(r.get("vehicle_recall")),
+                   _num(r.get("mean_between_scenario_distance"))] for n, r in bnn["runs"].items()])
+    md += ["", f"Latent policies use `{res['bnn']['policy_run']}`; raw-input mean scenario MMD²: "
+           f"{_num(bnn.get('raw_mean_between_scenario_distance'))}."]
+
+    steps = res["steps"]
+    total = sum(s["wall_s"] for s in steps.values())
+    by_kind: dict[str, list[float]] = {}
+    for s in steps.values():
+        by_kind.setdefault(s["kind"], []).append(s["wall_s"])
+    env = meta["environment"]
+    md += ["", "## Cost, hardware, versions", "",
+           f"- Last run: {meta['last_run'].get('wall_s', '–')} s wall with {meta['last_run'].get('workers', '–')} "
+           f"worker(s); {total:.0f} s of step time in all (finished steps of earlier runs included).",
+           f"- Peak memory of a step: {max(s['peak_rss_mb'] for s in steps.values()):.0f} MB.",
+           f"- Machine: {env['machine']}, {env['cpus']} CPUs, GPU: {env['gpu'] or 'none'}; Python {env['python']}, "
+           f"torch {env['torch']}, numpy {env['numpy']}.", ""]
+    md += _table(["step kind", "steps", "total s", "longest s"],
+                 [[k, str(len(v)), f"{sum(v):.0f}", f"{max(v):.0f}"] for k, v in sorted(by_kind.items())])
+    md += ["", "## Config", "", "```yaml", yaml.safe_dump(meta["config"], sort_keys=False).rstrip(), "```", ""]
+    atomic_write_text(out / "report.md", "\n".join(md))
+    return summary_table(res)
+
+
+def _num(x: float | None, digits: int = 3) -> str:
+    return "–" if x is None else f"{x:.{digits}f}"
