@@ -15,12 +15,9 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e ".[dev]"
 	touch $(STAMP)
 
-## run: the main job on its small built-in default
+## run: the main job on its small built-in default: the quick study (about 30 minutes on 2 cores)
 run: $(STAMP)
-	$(BIN)/latentdrive show merge --out runs/show-merge.png
-	$(BIN)/latentdrive bench --steps 20
-	$(BIN)/latentdrive bench --backend fast --steps 20 --batch-size 32
-	$(BIN)/latentdrive evaluate --scenarios intersection,merge --episodes 32 -q
+	$(BIN)/latentdrive reproduce runs/quick --preset quick --workers 2
 
 ## test: the default (fast) test suite
 test: $(STAMP)

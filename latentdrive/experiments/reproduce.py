@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from latentdrive.config import ConfigError, validate
+from latentdrive.experiments.estimate import Estimate, estimate_study, measured_rates
 from latentdrive.experiments.executor import run_local
 from latentdrive.experiments.graph import Graph, StepRecord
 from latentdrive.experiments.results import gather_results
@@ -23,7 +24,7 @@ from latentdrive.experiments.study_report import write_report
 from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
 from latentdrive.runlock import dir_lock
 
-__all__ = ["read_study", "rebuild_report", "run_study"]
+__all__ = ["estimate_from", "read_study", "rebuild_report", "run_study"]
 
 STUDY = "study.json"
 #: Imported once by the worker processes' fork server, so each step starts in milliseconds.
@@ -53,6 +54,8 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")
+    if workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {workers}")
     graph = build_graph(cfg)
     out.mkdir(parents=True, exist_ok=True)
     with dir_lock(out, "reproduce"):
@@ -110,3 +113,18 @@ def rebuild_report(out: str | Path, say: Callable[[str], None] = print) -> dict[
     except FileNotFoundError:
         pass
     return _report(cfg, build_graph(cfg), out, preset, previous, say)
+
+
+def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]) -> list[Estimate]:
+    """Estimates of the study ``cfg`` on each number of ``workers``, at the step times the
+    study in ``measured`` recorded (its finished steps; at least one of each class)."""
+    measured = Path(measured)
+    m_cfg, _ = read_study(measured)
+    m_graph = build_graph(m_cfg)
+    records = {n: r for n in m_graph.order if (r := m_graph.record(measured, n)) is not None}
+    if not records:
+        raise ConfigError(f"{measured}: no finished step to measure")
+    rates = measured_rates(m_graph, records)
+    scale = (cfg.bnn.collect.episodes * len(cfg.scenarios)) / (m_cfg.bnn.collect.episodes * len(m_cfg.scenarios))
+    graph = build_graph(cfg)
+    return [estimate_study(graph, rates, w, bnn_scale=scale) for w in workers]

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from latentdrive.config import parse_override_args
+from latentdrive.config import LatentDriveError, parse_override_args
 
 __all__ = ["add_reproduce_parsers"]
 
@@ -31,6 +31,25 @@ def _cmd_report(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_estimate(args: argparse.Namespace) -> int:
+    from latentdrive.experiments.reproduce import estimate_from
+    from latentdrive.experiments.study import load_reproduce_config
+
+    if any(w < 1 for w in args.workers):
+        raise LatentDriveError("--workers must all be at least 1")
+    cfg = load_reproduce_config(args.preset, parse_override_args(args.overrides))
+    estimates = estimate_from(args.measured, cfg, args.workers)
+    first = estimates[0]
+    print(f"{args.preset}: {first.steps} steps, {first.step_hours:.1f} step-hours at the step times of {args.measured}")
+    for cls, hours in first.by_class.items():
+        print(f"  {cls:<28}{hours:>9.2f} h")
+    for e in estimates:
+        print(f"wall time with {e.workers:>3} worker(s): {e.wall_hours:.1f} h")
+    if first.unmeasured:
+        print("not measured there (counted as 0): " + ", ".join(first.unmeasured))
+    return 0
+
+
 def add_reproduce_parsers(sub: Any) -> None:
     s = sub.add_parser("reproduce", help="the paper's study in one command: data, BNNs, policies, evaluations, report")
     s.add_argument("out", help="study folder (rerun the same command to resume; finished steps are skipped)")
@@ -43,6 +62,13 @@ def add_reproduce_parsers(sub: Any) -> None:
     s.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="study override, repeatable (--set policy.steps=20000 --set evaluate.episodes=100)")
     s.set_defaults(func=_cmd_reproduce)
+
+    s = sub.add_parser("estimate", help="a study's expected time from the step times a finished study measured")
+    s.add_argument("measured", help="a study folder whose finished steps were timed (e.g. the quick study)")
+    s.add_argument("--preset", default="paper", help="the study to estimate (default paper), or a .yaml file")
+    s.add_argument("--workers", type=int, nargs="+", default=[1, 2, 16], help="worker counts to estimate (default 1 2 16)")
+    s.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="study override")
+    s.set_defaults(func=_cmd_estimate)
 
     s = sub.add_parser("report", help="rebuild a study's results.json, report.md and figures from its finished steps")
     s.add_argument("out", help="the study folder")

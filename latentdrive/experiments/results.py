@@ -84,8 +84,14 @@ class _Study:
             per_seed = [_subset(e, test) for e in runs]
             entry: dict[str, Any] = {"episodes_per_seed": len(per_seed[0]) if per_seed else 0}
             for what in ("failure", "crash"):
-                rates = [float(_flags(e, what).mean()) for e in per_seed]
-                entry[what] = {**seed_interval(rates), "per_seed": rates}
+                flags = [_flags(e, what) for e in per_seed]
+                pooled = np.concatenate(flags) if flags else np.zeros(0, dtype=bool)
+                w = rate_ci(int(pooled.sum()), len(pooled))
+                # The Wilson interval over the pooled episodes describes these trained
+                # policies; the interval over seeds, the training method.
+                entry[what] = {**seed_interval([float(f.mean()) for f in flags]),
+                               "per_seed": [float(f.mean()) for f in flags],
+                               "episodes": {"rate": w.rate, "lo": w.lo, "hi": w.hi, "n": w.n}}
             out[test] = entry
         return out
 

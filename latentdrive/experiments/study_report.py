@@ -19,9 +19,11 @@ def _pct(x: float | None) -> str:
 
 
 def _agg(e: dict[str, Any]) -> str:
-    """``mean [lo, hi]`` in percent; an interval over seeds only when there are several."""
+    """``mean [lo, hi]`` in percent: over seeds when there are several; with one seed, the
+    Wilson interval over its episodes, marked ``w``."""
     if e["lo"] is None:
-        return f"{_pct(e['mean'])} (1 seed)"
+        w = e["episodes"]
+        return f"{_pct(e['mean'])} [{_pct(w['lo'])}, {_pct(w['hi'])}]w"
     return f"{_pct(e['mean'])} [{_pct(e['lo'])}, {_pct(e['hi'])}]"
 
 
@@ -40,11 +42,11 @@ def _table(header: list[str], rows: list[list[str]]) -> list[str]:
 def summary_table(res: dict[str, Any]) -> str:
     """The headline as plain text: printed at the end of a study."""
     refs = res["references"]
-    lines = [f"{'test set':<13}{'raw failure %':>20}{'latent failure %':>20}{'reduction':>10}{'McNemar p':>10}"
+    lines = [f"{'test set':<13}{'raw failure %':>24}{'latent failure %':>24}{'reduction':>10}{'McNemar p':>10}"
              f"{'random':>8}{'planner':>8}"]
     for r in res["headline"]:
         red = r["reduction"]["failure"]
-        lines.append(f"{r['test']:<13}{_agg(r['raw']['failure']):>20}{_agg(r['latent']['failure']):>20}"
+        lines.append(f"{r['test']:<13}{_agg(r['raw']['failure']):>24}{_agg(r['latent']['failure']):>24}"
                      f"{'–' if red is None else f'{100 * red:+.0f}%':>10}{_p(r['paired']['failure']['p_value']):>10}"
                      f"{_pct(refs['random'][r['test']]['failure']['rate']) if 'random' in refs else '–':>8}"
                      f"{_pct(refs['plan'][r['test']]['failure']['rate']) if 'plan' in refs else '–':>8}")
@@ -62,7 +64,9 @@ def _scale(res: dict[str, Any]) -> list[str]:
         lines.append("- With fewer than 3 training seeds, intervals over seeds are missing or rest on very few "
                      "draws: the rates describe these trained policies, not the training method.")
     lines.append("- Intervals: `[lo, hi]` after a mean over seeds is rliable's 95% stratified-bootstrap interval over "
-                 "training seeds; after a single policy's rate, the 95% Wilson interval over its episodes. McNemar's "
+                 "training seeds; `[lo, hi]w` (one seed) and intervals of single policies are 95% Wilson intervals "
+                 "over episodes, which say how well these trained policies were measured, not how another training "
+                 "seed would do. McNemar's "
                  "exact test pairs latent and raw on identical episodes (seed k against seed k, pooled); a large p "
                  "does not show the two are equal.")
     lines.append("- Evaluation episodes are drawn from seeds disjoint from every training seed.")
@@ -110,7 +114,9 @@ def write_report(res: dict[str, Any], out: Path) -> str:
     md += ["", "## 2. Train × test", "", "![matrix](figures/matrix.png)", ""]
     for rep in ("raw", "latent"):
         md += [f"Failure % of `{rep}` policies (rows: trained on; columns: tested on; mean over seeds):", ""]
-        md += _table(["trained on", *tests], [[tr, *(_pct(v[t]) for t in tests)] for tr, v in res["matrix"][rep].items()])
+        rows = [[tr, *(_pct(v[t]) for t in tests)] for tr, v in res["matrix"][rep].items()]
+        rows += [[f"*{ref} (reference)*", *(_pct(refs[ref][t]["failure"]["rate"]) for t in tests)] for ref in refs]
+        md += _table(["trained on", *tests], rows)
         md.append("")
 
     md += ["## 3. Domain adaptation: the mix policy against each scenario's own", ""]

@@ -1,0 +1,117 @@
+"""How long a study would take, from the step times another study measured.
+
+Each step has a *size* in the unit its time grows with (agent-transitions for a policy,
+sample-epochs for a BNN, episodes for an evaluation), and a *class* within which that time
+per unit is roughly constant (a policy's input mode, an evaluation's backend and policy).
+A finished study gives seconds per unit for each class; a planned study's steps times
+their sizes give its step times, and a list schedule over ``workers`` (the executor's own
+order: longest remaining chain first) gives its wall time.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+from latentdrive.config import ConfigError
+from latentdrive.experiments.graph import Graph, Step, StepRecord
+
+__all__ = ["Estimate", "estimate_study", "measured_rates", "step_size"]
+
+
+def step_size(step: Step) -> tuple[str, float]:
+    """``(class, size)`` of a step: what its run time is proportional to."""
+    c = step.config
+    if step.kind == "dataset":
+        return "dataset", float(c["collect"]["episodes"] * len(c["collect"]["scenarios"]))
+    if step.kind == "bnn":
+        # An epoch's time also grows with the dataset, which this step's config does not
+        # hold: estimate_study scales it (bnn_scale).
+        return "bnn", float(c["train"]["pretrain_epochs"] + c["train"]["mixed_epochs"])
+    if step.kind == "bnn-report":
+        study = c["study"]
+        return "bnn-report", float(len(c["runs"]) * study["eval_samples"] * len(study["collect"]["scenarios"]))
+    if step.kind == "policy":
+        return f"policy:{c['train']['mode']}", float(c["train"]["steps"])
+    if step.kind == "evaluate":
+        ev = c["eval"]
+        who = c.get("reference") or "policy"
+        return f"evaluate:{ev['backend']}:{who}", float(ev["episodes"] * len(ev["scenarios"]))
+    raise ConfigError(f"no size for step kind {step.kind!r}")
+
+
+def measured_rates(graph: Graph, records: Mapping[str, StepRecord]) -> dict[str, float]:
+    """Seconds per unit of size for each step class, from finished steps."""
+    wall: dict[str, float] = {}
+    size: dict[str, float] = {}
+    for name, rec in records.items():
+        cls, n = step_size(graph.steps[name])
+        wall[cls] = wall.get(cls, 0.0) + rec.wall_s
+        size[cls] = size.get(cls, 0.0) + n
+    return {cls: wall[cls] / size[cls] for cls in wall if size[cls] > 0}
+
+
+@dataclass(frozen=True)
+class Estimate:
+    """A planned study's time: the sum of its steps' times and its wall time on ``workers``."""
+
+    steps: int
+    step_hours: float
+    wall_hours: float
+    workers: int
+    by_class: dict[str, float]
+    unmeasured: list[str]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"steps": self.steps, "step_hours": self.step_hours, "wall_hours": self.wall_hours,
+                "workers": self.workers, "hours_by_class": self.by_class, "unmeasured": self.unmeasured}
+
+
+def estimate_study(graph: Graph, rates: Mapping[str, float], workers: int, bnn_scale: float = 1.0) -> Estimate:
+    """Step and wall hours of ``graph`` at the measured ``rates``.
+
+    ``bnn_scale`` multiplies BNN-epoch times: an epoch's time grows with the dataset, whose
+    size the measured study may not share (the caller passes the ratio of their episodes).
+    """
+    times: dict[str, float] = {}
+    by_class: dict[str, float] = {}
+    unmeasured: set[str] = set()
+    for name, step in graph.steps.items():
+        cls, n = step_size(step)
+        if cls not in rates:
+            unmeasured.add(cls)
+            times[name] = 0.0
+            continue
+        t = rates[cls] * n * (bnn_scale if cls == "bnn" else 1.0)
+        times[name] = t
+        by_class[cls] = by_class.get(cls, 0.0) + t / 3600
+    return Estimate(steps=len(graph.order), step_hours=sum(times.values()) / 3600,
+                    wall_hours=_makespan(graph, times, workers) / 3600, workers=workers,
+                    by_class={k: round(v, 2) for k, v in sorted(by_class.items())}, unmeasured=sorted(unmeasured))
+
+
+def _makespan(graph: Graph, times: Mapping[str, float], workers: int) -> float:
+    """Wall time of a list schedule: a free worker takes the ready step with the longest
+    chain of step times after it (as the local executor does)."""
+    dependents: dict[str, list[str]] = {n: [] for n in graph.order}
+    for n in graph.order:
+        for dep in graph.steps[n].inputs.values():
+            dependents[dep].append(n)
+    rank: dict[str, float] = {}
+    for n in reversed(graph.order):
+        rank[n] = times[n] + max((rank[d] for d in dependents[n]), default=0.0)
+    finish: dict[str, float] = {}
+    free = [0.0] * workers
+    todo = set(graph.order)
+    while todo:
+        # The earliest a step can start is when its inputs are done; pick greedily by rank
+        # among steps whose inputs are scheduled, on the worker that frees first.
+        ready = [n for n in todo if all(d in finish for d in graph.steps[n].inputs.values())]
+        n = max(ready, key=lambda m: (rank[m], m))
+        w = min(range(workers), key=lambda i: free[i])
+        start = max([free[w], *(finish[d] for d in graph.steps[n].inputs.values())])
+        finish[n] = start + times[n]
+        free[w] = finish[n]
+        todo.remove(n)
+    return max(finish.values(), default=0.0)

@@ -1,0 +1,118 @@
+"""The study graph: keys that change exactly when a step's definition does, resumable
+execution in worker processes, failures that cost only their descendants."""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from latentdrive.config import ConfigError
+from latentdrive.experiments.executor import StepFailed, StepKind, run_local
+from latentdrive.experiments.graph import DONE, Graph, Step
+
+
+def _write(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:
+    """A toy step: its value plus the sum of its inputs' values; counts its runs in a log."""
+    total = config["value"] + sum(json.loads((p / "value.json").read_text()) for p in inputs.values())
+    (folder / "value.json").write_text(json.dumps(total))
+    with open(folder.parent.parent / "runs.log", "a") as log:
+        log.write(f"{folder.name}\n")
+    if config.get("fail"):
+        raise ValueError("this step always fails\nsecond line")
+    return {"value": total, "pid": os.getpid(), "nan": float("nan")}
+
+
+KINDS = {"toy": StepKind(_write)}
+
+
+def _diamond(top: int = 1, fail_left: bool = False) -> Graph:
+    return Graph([
+        Step("top", "toy", {"value": top}),
+        Step("left", "toy", {"value": 10, "fail": fail_left}, {"a": "top"}),
+        Step("right", "toy", {"value": 100}, {"a": "top"}, cost=5),
+        Step("bottom", "toy", {"value": 1000}, {"l": "left", "r": "right"}),
+        Step("alone", "toy", {"value": 7}),
+    ])
+
+
+def _runs(out: Path) -> list[str]:
+    return (out / "runs.log").read_text().split()
+
+
+def test_keys_change_downstream_of_a_changed_step_only() -> None:
+    a, b = _diamond(top=1), _diamond(top=2)
+    assert {n for n in a.order if a.keys[n] != b.keys[n]} == {"top", "left", "right", "bottom"}
+    assert _diamond().keys == _diamond().keys
+    # The cost estimate is not part of the definition.
+    c = Graph([Step("top", "toy", {"value": 1}, cost=99)])
+    assert c.keys["top"] == a.keys["top"]
+
+
+def test_the_graph_refuses_bad_shapes() -> None:
+    with pytest.raises(ConfigError, match="two steps are named 'a'"):
+        Graph([Step("a", "toy", {}), Step("a", "toy", {})])
+    with pytest.raises(ConfigError, match="unknown step 'nope'"):
+        Graph([Step("a", "toy", {}, {"x": "nope"})])
+    with pytest.raises(ConfigError, match="depend on each other"):
+        Graph([Step("a", "toy", {}, {"x": "b"}), Step("b", "toy", {}, {"x": "a"})])
+
+
+def test_steps_run_once_in_dependency_order_and_resume_skips_them(tmp_path: Path) -> None:
+    g = _diamond()
+    recs = run_local(g, tmp_path, KINDS, workers=2, progress=False)
+    assert recs["bottom"].summary["value"] == 1000 + (10 + 1) + (100 + 1)
+    assert recs["bottom"].summary["nan"] is None  # summaries are always valid JSON
+    order = _runs(tmp_path)
+    assert sorted(order) == sorted(g.folder(tmp_path, n).name for n in g.order)
+    assert order.index(g.folder(tmp_path, "bottom").name) > order.index(g.folder(tmp_path, "left").name)
+    # Each step ran in a process of its own, none in this one.
+    pids = {r.summary["pid"] for r in recs.values()}
+    assert os.getpid() not in pids and len(pids) == len(recs)
+    assert all(r.peak_rss_mb > 0 and r.wall_s >= 0 for r in recs.values())
+
+    run_local(g, tmp_path, KINDS, workers=1, progress=False)
+    assert len(_runs(tmp_path)) == len(order)  # nothing ran again
+
+    g2 = _diamond(top=2)
+    run_local(g2, tmp_path, KINDS, workers=1, progress=False)
+    assert len(_runs(tmp_path)) == len(order) + 4  # the changed step and its descendants
+    assert g.record(tmp_path, "top") is not None  # the old version is left alone
+
+
+def test_a_failed_step_costs_only_its_descendants(tmp_path: Path) -> None:
+    g = _diamond(fail_left=True)
+    with pytest.raises(StepFailed) as info:
+        run_local(g, tmp_path, KINDS, workers=2, progress=False)
+    msg = str(info.value)
+    assert "left: this step always fails" in msg and "second line" not in msg and "1 steps that need them" in msg
+    assert g.record(tmp_path, "right") is not None and g.record(tmp_path, "alone") is not None
+    assert g.record(tmp_path, "left") is None and g.record(tmp_path, "bottom") is None
+    assert not (g.folder(tmp_path, "bottom")).exists()
+
+
+def test_an_interrupted_step_runs_again_from_a_clean_folder(tmp_path: Path) -> None:
+    g = _diamond()
+    stale = g.folder(tmp_path, "top")
+    stale.mkdir(parents=True)
+    (stale / "half-written.tmp").write_text("x")  # what a killed attempt leaves: no done.json
+    run_local(g, tmp_path, KINDS, workers=1, progress=False)
+    assert not (stale / "half-written.tmp").exists() and (stale / DONE).exists()
+
+
+def test_a_foreign_record_is_a_one_line_error(tmp_path: Path) -> None:
+    g = _diamond()
+    run_local(g, tmp_path, KINDS, workers=1, progress=False)
+    path = g.folder(tmp_path, "alone") / DONE
+    data = json.loads(path.read_text())
+    path.write_text(json.dumps({**data, "key": "0" * 12}))
+    with pytest.raises(ConfigError, match="records step 'alone' with key 000000000000"):
+        g.record(tmp_path, "alone")
+    path.write_text("[1, 2")
+    with pytest.raises(ConfigError) as info:
+        g.record(tmp_path, "alone")
+    assert "\n" not in str(info.value) and str(path) in str(info.value)

@@ -1,0 +1,94 @@
+"""`latentdrive reproduce` end to end on the tiny preset: every experiment's table and
+figure, resumption without rework, the same numbers when steps are re-run, and a report
+rebuilt from the finished steps alone."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from latentdrive.cli import main
+from latentdrive.experiments.study import build_graph, load_reproduce_config
+
+
+def _numbers(out: Path) -> dict[str, Any]:
+    res = json.loads((out / "results.json").read_text())
+    res.pop("steps")
+    res.pop("meta")
+    return res
+
+
+@pytest.fixture(scope="module")
+def tiny_study(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("study") / "out"
+    assert main(["reproduce", str(out), "--preset", "tiny", "--workers", "2", "-q"]) == 0
+    return out
+
+
+def test_the_tiny_study_reports_every_experiment(tiny_study: Path) -> None:
+    res = json.loads((tiny_study / "results.json").read_text())
+    assert {"headline", "matrix", "domain_adaptation", "transfer", "leave_one_out", "ablations", "vs_random",
+            "references", "bnn", "steps", "meta"} <= set(res)
+    scen = ["roundabout", "intersection", "merge"]
+    assert [r["test"] for r in res["headline"]] == [*scen, "mixed"]
+    assert set(res["matrix"]["latent"]) == {*scen, "mixed"}
+    assert set(res["ablations"]) == {"raw", "latent", "latent-random", "end-to-end", "latent-lam"}
+    for row in res["headline"]:
+        for rep in ("raw", "latent"):
+            assert 0 <= row[rep]["failure"]["mean"] <= 1 and row[rep]["failure"]["seeds"] == 1
+        assert row["paired"]["failure"]["n"] == 2 * (len(scen) if row["test"] == "mixed" else 1)
+    assert all(s["peak_rss_mb"] > 0 for s in res["steps"].values())
+    report = (tiny_study / "report.md").read_text()
+    for section in ("Bottleneck vs baseline", "Train × test", "Domain adaptation", "Transfer learning",
+                    "Leave one scenario out", "Ablations", "Bottleneck network", "What this run can and cannot show"):
+        assert section in report
+    for fig in ("headline", "matrix", "transfer", "leave_one_out", "ablations", "bnn_loss", "bnn_distance"):
+        assert (tiny_study / "figures" / f"{fig}.png").stat().st_size > 1000
+    # Every figure the report shows is there.
+    for line in report.splitlines():
+        if line.startswith("!["):
+            assert (tiny_study / line[line.index("(") + 1:-1]).is_file(), line
+
+
+def test_rerunning_skips_finished_steps_and_rebuilding_the_report_changes_no_number(tiny_study: Path) -> None:
+    before = _numbers(tiny_study)
+    graph = build_graph(load_reproduce_config("tiny"))
+    stamps = {n: (graph.folder(tiny_study, n) / "done.json").stat().st_mtime_ns for n in graph.order}
+    assert main(["reproduce", str(tiny_study), "--preset", "tiny", "-q"]) == 0
+    assert stamps == {n: (graph.folder(tiny_study, n) / "done.json").stat().st_mtime_ns for n in graph.order}
+    (tiny_study / "report.md").unlink()
+    assert main(["report", str(tiny_study)]) == 0
+    assert (tiny_study / "report.md").is_file() and _numbers(tiny_study) == before
+
+
+def test_re_running_steps_gives_the_same_numbers(tiny_study: Path) -> None:
+    before = _numbers(tiny_study)
+    graph = build_graph(load_reproduce_config("tiny"))
+    # A policy and the evaluations that read it, run again in one worker instead of two.
+    for name in ("policy/latent/mixed/s0", "evaluate/policy/latent/mixed/s0", "evaluate/ref/random"):
+        shutil.rmtree(graph.folder(tiny_study, name))
+    assert main(["reproduce", str(tiny_study), "--preset", "tiny", "--workers", "1", "-q"]) == 0
+    assert _numbers(tiny_study) == before
+
+
+def test_report_of_a_folder_that_holds_no_study_is_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["report", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "not a study folder" in err[0]
+
+
+def test_an_unknown_preset_or_key_is_refused_before_anything_is_written(tmp_path: Path,
+                                                                         capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "o"
+    assert main(["reproduce", str(out), "--preset", "huge"]) == 2
+    assert main(["reproduce", str(out), "--preset", "tiny", "--set", "policy.train.bogus=1"]) == 2
+    assert main(["reproduce", str(out), "--preset", "tiny", "--set", "policy_bnn=5"]) == 2
+    assert main(["reproduce", str(out), "--preset", "tiny", "--workers", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 4 and all(line.startswith("latentdrive: error:") for line in err)
+    assert "unknown preset 'huge'" in err[0] and "bogus" in err[1] and "policy_bnn 5" in err[2] and "--workers" in err[3]
+    assert not out.exists()
