@@ -92,3 +92,34 @@ def test_an_unknown_preset_or_key_is_refused_before_anything_is_written(tmp_path
     assert len(err) == 4 and all(line.startswith("latentdrive: error:") for line in err)
     assert "unknown preset 'huge'" in err[0] and "bogus" in err[1] and "policy_bnn 5" in err[2] and "--workers" in err[3]
     assert not out.exists()
+
+
+def test_a_killed_study_loses_only_the_steps_in_progress(tiny_study: Path, tmp_path: Path) -> None:
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    before = _numbers(tiny_study)
+    out = tmp_path / "copy"
+    shutil.copytree(tiny_study, out)
+    graph = build_graph(load_reproduce_config("tiny"))
+    redo = [n for n in graph.order if "/latent/" in n]
+    for name in redo:
+        shutil.rmtree(graph.folder(out, name))
+    proc = subprocess.Popen([sys.executable, "-m", "latentdrive", "reproduce", str(out), "--preset", "tiny",
+                             "--workers", "2", "-q"], start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while not any((graph.folder(out, n) / "done.json").exists() for n in redo):
+        assert proc.poll() is None and time.monotonic() < deadline
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)  # the whole study, workers included, at an arbitrary moment
+    proc.wait()
+    finished = {n: (graph.folder(out, n) / "done.json").stat().st_mtime_ns for n in graph.order
+                if (graph.folder(out, n) / "done.json").exists()}
+    assert 0 < len(finished) < len(graph.order)
+    assert main(["reproduce", str(out), "--preset", "tiny", "--workers", "2", "-q"]) == 0
+    assert all((graph.folder(out, n) / "done.json").stat().st_mtime_ns == t for n, t in finished.items())
+    assert _numbers(out) == before
