@@ -1,10 +1,12 @@
-"""Disjoint seed ranges for training and evaluation environments.
+"""Disjoint seed ranges for training, evaluation and probing environments.
 
 A vector env reset with seed ``s`` gives environment ``i`` the seed ``s + i``; every later
 episode seed of that environment comes from a generator seeded with it. Training resets
-draw ``s`` from :data:`TRAIN_RESET_SEEDS` and evaluation from :data:`EVAL_RESET_SEEDS`,
+draw ``s`` from :data:`TRAIN_RESET_SEEDS`, evaluation from :data:`EVAL_RESET_SEEDS` and
+the linear probes of :mod:`latentdrive.evaluate.probes` from :data:`PROBE_RESET_SEEDS`,
 ranges that do not overlap even after adding environment indices (below
-:data:`MAX_ENVS`), so no evaluation environment is ever seeded like a training one.
+:data:`MAX_ENVS`), so no evaluation or probe environment is ever seeded like a training
+one, and probing never looks at an evaluation set.
 """
 
 from __future__ import annotations
@@ -13,13 +15,14 @@ import numpy as np
 
 from latentdrive.config import ConfigError
 
-__all__ = ["EVAL_OFFSETS", "EVAL_RESET_SEEDS", "MAX_ENVS", "TRAINING_EVAL_OFFSET", "TRAIN_RESET_SEEDS",
-           "eval_reset_seed", "train_reset_seed"]
+__all__ = ["EVAL_OFFSETS", "EVAL_RESET_SEEDS", "MAX_ENVS", "PROBE_RESET_SEEDS", "PROBE_SETS", "TRAINING_EVAL_OFFSET",
+           "TRAIN_RESET_SEEDS", "eval_reset_seed", "probe_reset_seed", "train_reset_seed"]
 
 #: Environments per vector env that the ranges leave room for.
 MAX_ENVS = 4096
 TRAIN_RESET_SEEDS = range(0, 2**30 - MAX_ENVS)
 EVAL_RESET_SEEDS = range(2**30, 2**31 - MAX_ENVS)
+PROBE_RESET_SEEDS = range(2**31, 2**32 - MAX_ENVS)
 
 
 def train_reset_seed(seed: int, segment: int) -> int:
@@ -41,3 +44,14 @@ def eval_reset_seed(offset: int = 0) -> int:
     if not 0 <= offset < EVAL_OFFSETS:
         raise ConfigError(f"evaluation seed offset must be in [0, {EVAL_OFFSETS}), got {offset}")
     return EVAL_RESET_SEEDS.start + offset * MAX_ENVS
+
+
+#: Probe data sets available: set k uses reset seeds ``start + k·MAX_ENVS + i``.
+PROBE_SETS = len(PROBE_RESET_SEEDS) // MAX_ENVS
+
+
+def probe_reset_seed(seed: int = 0) -> int:
+    """The reset seed of probe data set ``seed`` (:mod:`latentdrive.evaluate.probes`)."""
+    if not 0 <= seed < PROBE_SETS:
+        raise ConfigError(f"probe seed must be in [0, {PROBE_SETS}), got {seed}")
+    return PROBE_RESET_SEEDS.start + seed * MAX_ENVS

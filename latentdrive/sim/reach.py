@@ -5,6 +5,7 @@ farthest-back start to the point that completes the mission, and the time that t
 the AVs' top target speed. A scenario whose missions cannot be completed in time at top
 speed measures nothing with its failure rate, so the presets keep that time within ~70%
 of the duration (tested), which leaves time for traffic, lane changes and acceleration.
+:func:`distance_to_goal` measures the same route length from any point of the road.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from latentdrive.config import ConfigError
 from latentdrive.scenarios.spec import ScenarioSpec
 from latentdrive.sim.fast.network import LENGTH, Network, get_network
 
-__all__ = ["MissionRoute", "mission_routes"]
+__all__ = ["MissionRoute", "distance_to_goal", "mission_routes"]
 
 
 class MissionRoute(NamedTuple):
@@ -42,6 +43,25 @@ def _edge_length(net: Network, edge: tuple[str, str], lane: int | None = None) -
     return max(float(net.table.geo[LENGTH, k]) for k in lanes)
 
 
+def distance_to_goal(net: Network, edge: tuple[str, str], lane: int, s: float, goal: str,
+                     goal_longitudinal: float) -> float | None:
+    """Metres a vehicle ``s`` metres along lane id ``lane`` of ``edge`` drives until a mission to
+    ``goal`` completes: the rest of its lane, the edges of the planned path between (their
+    longest lane), and ``goal_longitudinal`` metres along the edge that ends at ``goal``.
+
+    Negative once the vehicle is past the completion point on a goal edge; None when no
+    path leads from the end of ``edge`` to ``goal``.
+    """
+    if edge[1] == goal:  # already on the goal edge
+        return goal_longitudinal - s
+    path = net.paths.get((edge[1], goal))
+    if not path or len(path) < 2:
+        return None
+    edges = list(itertools.pairwise(path))
+    return (_edge_length(net, edge, lane) - s
+            + sum(_edge_length(net, e) for e in edges[:-1]) + goal_longitudinal)
+
+
 def mission_routes(spec: ScenarioSpec) -> list[MissionRoute]:
     """Every (spawn region, lane, goal) route of ``spec``'s AVs, with its worst-case length.
 
@@ -60,16 +80,13 @@ def mission_routes(spec: ScenarioSpec) -> list[MissionRoute]:
         start = region.longitudinal.mean - region.longitudinal.clip
         goals = region.destinations or spec.goal.nodes
         for lane, goal in itertools.product(region.lanes, goals):
-            if region.edge[1] == goal:  # the goal edge is the spawn edge itself
-                last, dist = region.edge, spec.goal.longitudinal - start
-            else:
-                path = net.paths.get((region.edge[1], goal))
-                if not path:
-                    raise ConfigError(f"{spec.name}: goal {goal!r} is unreachable from spawn edge {region.edge}")
-                edges = list(itertools.pairwise(path))
-                last = edges[-1]
-                dist = (_edge_length(net, region.edge, lane) - start
-                        + sum(_edge_length(net, e) for e in edges[:-1]) + spec.goal.longitudinal)
+            dist = distance_to_goal(net, region.edge, lane, start, goal, spec.goal.longitudinal)
+            if dist is None:
+                raise ConfigError(f"{spec.name}: goal {goal!r} is unreachable from spawn edge {region.edge}")
+            last = region.edge
+            if region.edge[1] != goal:
+                path = net.paths[(region.edge[1], goal)]
+                last = (path[-2], path[-1])
             if spec.goal.longitudinal > _edge_length(net, last):
                 raise ConfigError(f"{spec.name}: goal.longitudinal {spec.goal.longitudinal:g} m is beyond the end of "
                                   f"goal edge {last} ({_edge_length(net, last):.0f} m)")

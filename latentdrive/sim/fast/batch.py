@@ -250,3 +250,12 @@ class FastBatch:
         group = self._groups[g]
         n = int(group.state.env_i[N_VEH, r])
         return [group.network.lane_keys[int(k)] for k in group.state.i[LANE, r, :n]]
+
+    def goal_nodes(self, i: int) -> list[tuple[str, ...]]:
+        """Names of the nodes each AV of environment ``i`` may complete its mission at (its
+        destination when it drew one, else the spec's goal nodes), in agent order."""
+        g, r = self._where[i]
+        group = self._groups[g]
+        names = group.network.node_names
+        goals = group.state.goal[r, : int(group.state.env_i[N_AV, r])]
+        return [tuple(names[int(k)] for k in np.flatnonzero(row)) for row in goals]
