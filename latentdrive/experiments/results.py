@@ -22,7 +22,7 @@ from latentdrive.config import ConfigError
 from latentdrive.evaluate.aggregate import seed_interval
 from latentdrive.evaluate.stats import paired_test, rate_ci
 from latentdrive.experiments.graph import Graph, StepRecord
-from latentdrive.experiments.steps import OUTCOMES, RUN
+from latentdrive.experiments.steps import OUTCOMES, PROBES, RUN
 from latentdrive.experiments.study import ABLATIONS, REPS, ReproduceConfig
 from latentdrive.fileio import MAX_JSON_BYTES, read_json, read_text
 from latentdrive.outcome import EpisodeOutcome, outcomes_from_json
@@ -212,6 +212,10 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
     if exp.ablations:
         variants = [*REPS, *ABLATIONS]
         res["ablations"] = {v: st.kind(v, MIXED, [MIXED])[MIXED] for v in variants}
+
+    if exp.probe_episodes:
+        res["probes"] = read_json(graph.folder(out, "probes") / PROBES, limit=MAX_JSON_BYTES, what="probe results",
+                                  error=ConfigError)
 
     if cfg.evaluate.cross_backend_episodes:
         cross: dict[str, Any] = {}

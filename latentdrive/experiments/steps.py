@@ -29,6 +29,7 @@ from latentdrive.config import validate
 from latentdrive.data.collect import CollectConfig, collect
 from latentdrive.data.dataset import ShardDataset
 from latentdrive.evaluate.planner import PlannerConfig
+from latentdrive.evaluate.probes import ProbeConfig, run_probes
 from latentdrive.evaluate.report import policy_report
 from latentdrive.experiments.bnn import BNNStudyConfig, report_bnn_runs, train_on_dataset
 from latentdrive.experiments.executor import StepKind
@@ -39,10 +40,11 @@ from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import CHECKPOINT
 from latentdrive.rl.train import train_policy
 
-__all__ = ["OUTCOMES", "RUN", "STEP_KINDS"]
+__all__ = ["OUTCOMES", "PROBES", "RUN", "STEP_KINDS"]
 
 RUN = "run"
 OUTCOMES = "outcomes.json"
+PROBES = "probes.json"
 
 
 def _quiet(_: str) -> None:
@@ -98,10 +100,18 @@ def run_evaluate(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: 
     return {"episodes": len(outcomes), "failure_rate": rep.mixed.failure_rate.rate, "crash_rate": rep.mixed.crash_rate.rate}
 
 
+def run_probes_step(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:
+    cfg = validate(ProbeConfig, config["probe"])
+    result = run_probes(cfg, config["kinds"], inputs["bnn"] / RUN if "bnn" in inputs else None)
+    atomic_write_text(folder / PROBES, json.dumps(result, indent=1, allow_nan=False) + "\n")
+    return {"samples": result["samples"]}
+
+
 STEP_KINDS: dict[str, StepKind] = {
     "dataset": StepKind(run_dataset, resumable=True),
     "bnn": StepKind(run_bnn, resumable=True, gpu=True),
     "bnn-report": StepKind(run_bnn_report),
     "policy": StepKind(run_policy, resumable=True, gpu=True),
     "evaluate": StepKind(run_evaluate),
+    "probes": StepKind(run_probes_step),
 }

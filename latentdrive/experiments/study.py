@@ -81,6 +81,7 @@ class StudyExperimentsConfig(Config):
     transfer_target: str | None = Field("roundabout", description="Scenario fine-tuned on after pretraining on the others (none: skip transfer learning).")
     leave_one_out: bool = Field(True, description="Train on all scenarios but one, test zero-shot on it, for every scenario.")
     ablations: bool = Field(True, description="latent-random, end-to-end and the λ > 0 BNN on the mix, beside latent and raw.")
+    probe_episodes: int = Field(20, ge=0, le=100_000, description="Episodes per scenario (rule driver) on which linear probes read driving quantities from raw, latent and random-encoder features (0: skip).")
 
 
 class ReproduceConfig(Config):
@@ -212,6 +213,10 @@ def build_graph(cfg: ReproduceConfig) -> Graph:
         steps.append(Step(f"evaluate/ref/{ref}", "evaluate", {"eval": {**eval_cfg, "planner": planner}, "reference": ref,
                                                               "specs": specs},
                           cost=eval_cost * (40 if ref == "plan" else 1)))
+    if exp.probe_episodes:
+        probe = {"scenarios": list(cfg.scenarios), "episodes": exp.probe_episodes, "observation": obs}
+        steps.append(Step("probes", "probes", {"probe": probe, "kinds": ["raw", "latent", "latent-random"], "specs": specs},
+                          {"bnn": bnn_for["latent"]}, cost=exp.probe_episodes * len(cfg.scenarios) * 0.6))
     if ev.cross_backend_episodes:
         for backend in ("fast", "highway"):
             small = {**eval_cfg, "episodes": ev.cross_backend_episodes, "envs": min(ev.envs, ev.cross_backend_episodes),

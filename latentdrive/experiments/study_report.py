@@ -163,8 +163,22 @@ def write_report(res: dict[str, Any], out: Path) -> str:
                       for rep, per in res["cross_backend"].items() for k, e in enumerate(per)])
         md += ["", "'Agree' means no significant difference on these episodes, not proof of equality."]
 
+    if "probes" in res:
+        pr = res["probes"]
+        kinds = [k for k in ("raw", "latent", "latent-random") if k in pr]
+        targets = list(pr[kinds[0]]) if kinds else []
+        md += ["", "## 8. What the features hold: linear probes", "",
+               f"Linear read-outs fitted on frozen features of {pr['samples']['train']} samples (rule driver), scored on "
+               f"{pr['samples']['test']} samples of held-out episodes: R² for quantities, accuracy for flags (beside "
+               "the majority-class accuracy, since free-lane flags are imbalanced).", ""]
+        md += _table(["target", "metric", *kinds, "baseline"],
+                     [[t, pr[kinds[0]][t]["metric"], *(_num(pr[k][t]["value"]) for k in kinds),
+                       _num(pr[kinds[0]][t]["baseline"])] for t in targets])
+        md += ["", "A high score shows the quantity is linearly readable from the features; a low one does not show "
+               "the policy cannot use it (its network is not linear)."]
+
     bnn = res["bnn"]["report"]
-    md += ["", "## 8. Bottleneck network", "", "![loss](figures/bnn_loss.png)", "![recon](figures/bnn_reconstruction.png)",
+    md += ["", "## 9. Bottleneck network", "", "![loss](figures/bnn_loss.png)", "![recon](figures/bnn_reconstruction.png)",
            "![latents](figures/bnn_latents.png)", "![distance](figures/bnn_distance.png)", ""]
     md += _table(["run", "d", "λ", "held-out recon", "vehicle recall", "mean scenario MMD²"],
                  [[n, str(r["latent_dim"]), f"{r['lambda']:g}", _num(r.get("val_recon"), 4), _pct(r.get("vehicle_recall")),

@@ -32,7 +32,7 @@ def tiny_study(tmp_path_factory: pytest.TempPathFactory) -> Path:
 def test_the_tiny_study_reports_every_experiment(tiny_study: Path) -> None:
     res = json.loads((tiny_study / "results.json").read_text())
     assert {"headline", "matrix", "domain_adaptation", "transfer", "leave_one_out", "ablations", "vs_random",
-            "references", "bnn", "steps", "meta"} <= set(res)
+            "references", "bnn", "probes", "steps", "meta"} <= set(res)
     scen = ["roundabout", "intersection", "merge"]
     assert [r["test"] for r in res["headline"]] == [*scen, "mixed"]
     assert set(res["matrix"]["latent"]) == {*scen, "mixed"}
@@ -44,7 +44,7 @@ def test_the_tiny_study_reports_every_experiment(tiny_study: Path) -> None:
     assert all(s["peak_rss_mb"] > 0 for s in res["steps"].values())
     report = (tiny_study / "report.md").read_text()
     for section in ("Bottleneck vs baseline", "Train × test", "Domain adaptation", "Transfer learning",
-                    "Leave one scenario out", "Ablations", "Bottleneck network", "What this run can and cannot show"):
+                    "Leave one scenario out", "Ablations", "Bottleneck network", "linear probes", "What this run can and cannot show"):
         assert section in report
     for fig in ("headline", "matrix", "transfer", "leave_one_out", "ablations", "bnn_loss", "bnn_distance"):
         assert (tiny_study / "figures" / f"{fig}.png").stat().st_size > 1000
