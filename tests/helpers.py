@@ -58,3 +58,13 @@ def held_by_another_process(directory: Path, what: str = "collect") -> Iterator[
     finally:
         holder.kill()
         holder.wait()
+
+
+def study_numbers(out: Path) -> dict[str, object]:
+    """Every number a study's results.json holds, without its timings and environment."""
+    import json
+
+    res = json.loads((out / "results.json").read_text())
+    res.pop("steps")
+    res.pop("meta")
+    return dict(res)

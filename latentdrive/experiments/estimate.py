@@ -38,6 +38,9 @@ def step_size(step: Step) -> tuple[str, float]:
         ev = c["eval"]
         who = c.get("reference") or "policy"
         return f"evaluate:{ev['backend']}:{who}", float(ev["episodes"] * len(ev["scenarios"]))
+    if step.kind == "probes":
+        p = c["probe"]
+        return "probes", float(p["episodes"] * len(p["scenarios"]))
     raise ConfigError(f"no size for step kind {step.kind!r}")
 
 

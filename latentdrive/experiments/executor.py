@@ -19,17 +19,17 @@ import resource
 import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from tqdm.auto import tqdm
 
 from latentdrive.errors import LatentDriveError, first_line
 from latentdrive.experiments.graph import Graph, Step, StepRecord
 
-__all__ = ["StepFailed", "StepKind", "execute_step", "run_local"]
+__all__ = ["Runner", "StepFailed", "StepKind", "check_kinds", "execute_step", "run_graph", "run_local"]
 
 StepFn = Callable[[Mapping[str, Any], Mapping[str, Path], Path], dict[str, Any]]
 
@@ -102,6 +102,45 @@ def _ranks(graph: Graph, names: Sequence[str]) -> dict[str, float]:
     return rank
 
 
+class Runner(Protocol):
+    """Where steps run: local worker processes, or Ray tasks (``ray_executor``)."""
+
+    #: Steps kept in flight at once.
+    slots: int
+
+    def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
+               write_record: Callable[[StepRecord], None]) -> Any:
+        """Start ``execute_step`` with these arguments; returns a handle."""
+
+    def wait(self, handles: Sequence[Any]) -> list[Any]:
+        """Block until at least one handle has finished; return the finished ones."""
+
+    def result(self, handle: Any) -> StepRecord:
+        """The record of a finished step, or its exception raised."""
+
+
+class _Pool:
+    def __init__(self, pool: ProcessPoolExecutor, slots: int) -> None:
+        self.pool, self.slots = pool, slots
+
+    def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
+               write_record: Callable[[StepRecord], None]) -> Any:
+        return self.pool.submit(execute_step, kind, step, key, inputs, folder, write_record)
+
+    def wait(self, handles: Sequence[Any]) -> list[Any]:
+        return list(wait(handles, return_when=FIRST_COMPLETED)[0])
+
+    def result(self, handle: Any) -> StepRecord:
+        rec: StepRecord = handle.result()
+        return rec
+
+
+def check_kinds(graph: Graph, kinds: Mapping[str, StepKind]) -> None:
+    for s in graph.steps.values():
+        if s.kind not in kinds:
+            raise LatentDriveError(f"study graph: step {s.name!r} has unknown kind {s.kind!r}")
+
+
 def run_local(graph: Graph, out: Path, kinds: Mapping[str, StepKind], workers: int = 1,
               preload: Sequence[str] = (), progress: bool = True,
               on_done: Callable[[StepRecord], None] | None = None) -> dict[str, StepRecord]:
@@ -112,17 +151,27 @@ def run_local(graph: Graph, out: Path, kinds: Mapping[str, StepKind], workers: i
     """
     if workers < 1:
         raise LatentDriveError(f"--workers must be at least 1, got {workers}")
-    for s in graph.steps.values():
-        if s.kind not in kinds:
-            raise LatentDriveError(f"study graph: step {s.name!r} has unknown kind {s.kind!r}")
+    check_kinds(graph, kinds)
+    ctx = mp.get_context("forkserver")
+    ctx.set_forkserver_preload(list(preload))
+    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1) as pool:
+        try:
+            return run_graph(graph, out, kinds, _Pool(pool, workers), progress=progress, on_done=on_done)
+        except KeyboardInterrupt:
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise
+
+
+def run_graph(graph: Graph, out: Path, kinds: Mapping[str, StepKind], runner: Runner, progress: bool = True,
+              on_done: Callable[[StepRecord], None] | None = None) -> dict[str, StepRecord]:
+    """The one scheduling loop, whatever runs the steps: start ready steps longest chain
+    first, up to ``runner.slots`` at once; record what finishes; report what fails."""
     records = {n: r for n in graph.order if (r := graph.record(out, n)) is not None}
     todo = [n for n in graph.order if n not in records]
     rank = _ranks(graph, todo)
     failed: dict[str, str] = {}
     blocked: set[str] = set()
-    running: dict[Future[StepRecord], str] = {}
-    ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(list(preload))
+    running: dict[Any, str] = {}
     bar = tqdm(total=round(sum(graph.steps[n].cost for n in todo)), disable=not progress or not todo,
                unit="s", bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}<{remaining} {postfix}",
                dynamic_ncols=True)
@@ -133,38 +182,33 @@ def run_local(graph: Graph, out: Path, kinds: Mapping[str, StepKind], workers: i
         names = sorted(running.values())
         bar.set_postfix_str(("running " + ", ".join(names)) if names else "", refresh=True)
 
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1) as pool:
-        try:
-            while todo or running:
-                ready = [n for n in todo if all(d in records for d in graph.steps[n].inputs.values())]
-                for n in sorted(ready, key=lambda m: -rank[m])[: workers - len(running)]:
-                    todo.remove(n)
-                    step = graph.steps[n]
-                    fut = pool.submit(execute_step, kinds[step.kind], step, graph.keys[n], graph.inputs(out, n),
-                                      graph.folder(out, n), _RecordWriter(graph, out))
-                    running[fut] = n
-                describe()
-                if not running:
-                    break  # what is left waits on failed steps
-                finished, _ = wait(running, return_when=FIRST_COMPLETED)
-                for fut in finished:
-                    n = running.pop(fut)
-                    bar.update(round(graph.steps[n].cost))
-                    try:
-                        records[n] = fut.result()
-                        done_count += 1
-                        if on_done is not None:
-                            on_done(records[n])
-                    except Exception as exc:  # reported with the step's name; the others go on
-                        failed[n] = first_line(exc)
-                        bar.write(f"step {n} failed: {failed[n]}")
-                        blocked.update(_descendants(graph, n))
-                        todo = [m for m in todo if m not in blocked]
-        except KeyboardInterrupt:
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
-        finally:
-            bar.close()
+    try:
+        while todo or running:
+            ready = [n for n in todo if all(d in records for d in graph.steps[n].inputs.values())]
+            for n in sorted(ready, key=lambda m: -rank[m])[: runner.slots - len(running)]:
+                todo.remove(n)
+                step = graph.steps[n]
+                handle = runner.submit(kinds[step.kind], step, graph.keys[n], graph.inputs(out, n),
+                                       graph.folder(out, n), _RecordWriter(graph, out))
+                running[handle] = n
+            describe()
+            if not running:
+                break  # what is left waits on failed steps
+            for handle in runner.wait(list(running)):
+                n = running.pop(handle)
+                bar.update(round(graph.steps[n].cost))
+                try:
+                    records[n] = runner.result(handle)
+                    done_count += 1
+                    if on_done is not None:
+                        on_done(records[n])
+                except Exception as exc:  # reported with the step's name; the others go on
+                    failed[n] = first_line(exc)
+                    bar.write(f"step {n} failed: {failed[n]}")
+                    blocked.update(_descendants(graph, n))
+                    todo = [m for m in todo if m not in blocked]
+    finally:
+        bar.close()
     if failed:
         lost = f"; {len(blocked)} steps that need them did not run" if blocked else ""
         raise StepFailed(f"{len(failed)} step(s) failed: " + "; ".join(f"{n}: {e}" for n, e in failed.items()) + lost)

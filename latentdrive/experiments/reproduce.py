@@ -47,8 +47,12 @@ def _cpus() -> int:
 
 
 def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset: str = "", progress: bool = True,
-              say: Callable[[str], None] = print) -> dict[str, Any]:
-    """Run (or resume) every unfinished step, then write results.json, report.md and figures."""
+              ray: str | None = None, gpu_fraction: float = 1.0, say: Callable[[str], None] = print) -> dict[str, Any]:
+    """Run (or resume) every unfinished step, then write results.json, report.md and figures.
+
+    Steps run in ``workers`` local processes, or as tasks on the Ray cluster at ``ray``
+    (see :func:`~latentdrive.experiments.ray_executor.run_ray`); results are the same.
+    """
     from latentdrive.experiments.steps import STEP_KINDS
 
     out = Path(out)
@@ -60,14 +64,20 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
     out.mkdir(parents=True, exist_ok=True)
     with dir_lock(out, "reproduce"):
         pending = graph.pending(out)
-        say(f"study: {len(graph.order)} steps, {len(graph.order) - len(pending)} already finished; "
-            f"{workers} worker(s) -> {out}")
+        where = f"Ray cluster {ray}" if ray else f"{workers} worker(s)"
+        say(f"study: {len(graph.order)} steps, {len(graph.order) - len(pending)} already finished; {where} -> {out}")
         atomic_write_text(out / STUDY, json.dumps({"preset": preset, "config": cfg.model_dump(mode="json")},
                                                   indent=1) + "\n")
         t0 = time.perf_counter()
-        run_local(graph, out, STEP_KINDS, workers=workers, preload=PRELOAD, progress=progress)
+        if ray:
+            from latentdrive.experiments.ray_executor import run_ray
+
+            run_ray(graph, out.resolve(), STEP_KINDS, ray, gpu_fraction=gpu_fraction, progress=progress)
+        else:
+            run_local(graph, out, STEP_KINDS, workers=workers, preload=PRELOAD, progress=progress)
         wall = time.perf_counter() - t0
-        return _report(cfg, graph, out, preset, {"workers": workers, "wall_s": round(wall, 1)}, say)
+        return _report(cfg, graph, out, preset, {"workers": f"ray {ray}" if ray else workers, "wall_s": round(wall, 1)},
+                       say)
 
 
 def _report(cfg: ReproduceConfig, graph: Graph, out: Path, preset: str, run: dict[str, Any],

@@ -18,7 +18,8 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     if args.seeds is not None:
         overrides["seeds"] = args.seeds
     cfg = load_reproduce_config(args.preset, overrides)
-    run_study(cfg, args.out, workers=args.workers, preset=args.preset, progress=not args.quiet)
+    run_study(cfg, args.out, workers=args.workers, preset=args.preset, progress=not args.quiet, ray=args.ray,
+              gpu_fraction=args.gpu_fraction)
     print(f"report: {args.out}/report.md")
     return 0
 
@@ -58,6 +59,11 @@ def add_reproduce_parsers(sub: Any) -> None:
     s.add_argument("--seeds", type=int, default=None, help="training seeds per policy (default: the preset's)")
     s.add_argument("--workers", type=int, default=1, help="steps run at once, each in its own process (default 1); "
                    "results do not depend on it")
+    s.add_argument("--ray", metavar="ADDRESS", default=None,
+                   help="run the steps as Ray tasks on the cluster at ADDRESS ('auto': the one this machine joined; "
+                   "'local': a private instance); OUT must be on a filesystem every node sees")
+    s.add_argument("--gpu-fraction", type=float, default=1.0,
+                   help="with --ray, the share of a GPU each training step asks for (default 1)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="study override, repeatable (--set policy.steps=20000 --set evaluate.episodes=100)")

@@ -82,7 +82,7 @@ class BottleneckConfig(Config):
         "leave an 8×16 map of 6 m squares for the linear layer to compress at the default "
         "32×64 grid of 1.5 m cells. With a third stage (4×8 squares of 12 m), the same "
         "training recovered fewer held-out vehicles at a higher error "
-        "(docs/bnn-study-small.md, 'Architecture and loss').",
+        "(docs/bnn-notes.md, 'Architecture and loss').",
     )
     spatial_kernel: int = Field(
         3, ge=1, le=9, description="Spatial kernel size (cells) of every convolution; odd."

@@ -300,13 +300,15 @@ def _init_weights(cfg: PolicyTrainConfig) -> dict[str, torch.Tensor]:
     src, src_cfg = load_policy_network(cfg.init_from)
     if src_cfg.mode != cfg.mode:
         raise ConfigError(f"--init-from {cfg.init_from}: a {src_cfg.mode} run cannot initialize a {cfg.mode} run")
-    if cfg.mode == "latent" and src_cfg.bnn != cfg.bnn:
-        # Its weights include the encoder: the run would not use the BNN its config names.
-        raise ConfigError(f"--init-from {cfg.init_from}: it was trained on BNN {src_cfg.bnn}, not {cfg.bnn}")
-    mine = build_network(cfg, encoder_config(cfg), load_bnn_weights=False).state_dict()
+    mine = build_network(cfg, encoder_config(cfg), load_bnn_weights=cfg.mode == "latent").state_dict()
     theirs = src.state_dict()
     if mine.keys() != theirs.keys() or any(mine[k].shape != theirs[k].shape for k in mine):
         raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's")
+    # Its weights include the frozen encoder: the run would not use the BNN its config names.
+    # Compared by weights, not by path, so a study folder can move or be mounted elsewhere.
+    if cfg.mode == "latent" and not all(torch.equal(mine[k], theirs[k]) for k in mine if k.startswith("encoder.")):
+        raise ConfigError(f"--init-from {cfg.init_from}: it was trained on another BNN than {cfg.bnn} "
+                          f"(its config names {src_cfg.bnn})")
     return theirs
 
 

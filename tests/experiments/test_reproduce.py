@@ -7,26 +7,12 @@ from __future__ import annotations
 import json
 import shutil
 from pathlib import Path
-from typing import Any
 
 import pytest
+from helpers import study_numbers as _numbers
 
 from latentdrive.cli import main
 from latentdrive.experiments.study import build_graph, load_reproduce_config
-
-
-def _numbers(out: Path) -> dict[str, Any]:
-    res = json.loads((out / "results.json").read_text())
-    res.pop("steps")
-    res.pop("meta")
-    return res
-
-
-@pytest.fixture(scope="module")
-def tiny_study(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("study") / "out"
-    assert main(["reproduce", str(out), "--preset", "tiny", "--workers", "2", "-q"]) == 0
-    return out
 
 
 def test_the_tiny_study_reports_every_experiment(tiny_study: Path) -> None:

@@ -180,3 +180,25 @@ def test_evaluating_a_run_whose_scenario_changed_warns(capsys, tmp_path, raw_run
     (run / "config.json").write_text(json.dumps(cfg))
     assert main(["evaluate", str(run), "--policy", "none", "--episodes", "1", "-q"]) == 0
     assert f"trained on {scenario} as specified then" in capsys.readouterr().err
+
+
+def test_latent_init_from_checks_the_bnn_by_its_weights_not_its_path(tmp_path, capsys):
+    # Regression: the BNN was compared by path, so fine-tuning in a moved (or differently
+    # mounted) study folder was refused although the weights were the same.
+    import shutil
+
+    import torch
+
+    torch.manual_seed(0)
+    bnn = _bnn_run(tmp_path / "bnn", (2, 16, 32))
+    args = ["--mode", "latent", "--steps", "60", *TINY_SETS, "-q"]
+    assert main(["train-policy", str(tmp_path / "src"), "--bnn", str(bnn), *args]) == 0
+    moved = tmp_path / "moved-bnn"
+    shutil.copytree(bnn, moved)
+    assert main(["train-policy", str(tmp_path / "ft"), "--bnn", str(moved), "--init-from", str(tmp_path / "src"),
+                 *args]) == 0
+    torch.manual_seed(1)
+    other = _bnn_run(tmp_path / "other", (2, 16, 32))
+    capsys.readouterr()
+    _fails(capsys, ["train-policy", str(tmp_path / "ft2"), "--bnn", str(other), "--init-from", str(tmp_path / "src"),
+                    *args], "trained on another BNN", tmp_path)

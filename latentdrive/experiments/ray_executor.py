@@ -1,0 +1,93 @@
+"""Run a study graph's unfinished steps as Ray tasks on an existing cluster.
+
+The same scheduling loop as local mode (:func:`~latentdrive.experiments.executor.run_graph`)
+and the same step keys, so an interrupted driver resumes with the same command, and a
+study started locally can finish on a cluster (or the reverse). Every node must see the
+study folder at the same path (a shared filesystem); a step whose inputs are missing on
+its node fails with a one-line error naming the path.
+
+Each step is one task in a fresh worker process (``max_calls=1``: its peak memory is its
+own), asking for its kind's CPUs and, when the cluster has GPUs, a share of one for the
+kinds that use it. A task whose worker dies (a killed process, a lost node) is retried by
+Ray up to ``retries`` times; an error raised by the step itself is not retried (it would
+fail the same way) and is reported with the step's name.
+
+Ray is an optional dependency (``pip install latentdrive[ray]``); only this module imports it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+from latentdrive.errors import LatentDriveError
+from latentdrive.experiments.executor import StepKind, check_kinds, execute_step, run_graph
+from latentdrive.experiments.graph import Graph, Step, StepRecord
+
+__all__ = ["run_ray"]
+
+
+class _RayRunner:
+    def __init__(self, ray: Any, retries: int, gpu_fraction: float) -> None:
+        self.ray = ray
+        res = ray.cluster_resources()
+        self.slots = max(1, int(res.get("CPU", 1)))
+        self.has_gpu = res.get("GPU", 0) > 0
+        self.retries, self.gpu_fraction = retries, gpu_fraction
+        self.remote = ray.remote(max_calls=1)(execute_step)
+
+    def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
+               write_record: Callable[[StepRecord], None]) -> Any:
+        gpus = self.gpu_fraction if kind.gpu and self.has_gpu else 0
+        return self.remote.options(num_cpus=kind.cpus, num_gpus=gpus, max_retries=self.retries,
+                                   retry_exceptions=False, name=step.name).remote(
+            kind, step, key, inputs, folder, write_record)
+
+    def wait(self, handles: Sequence[Any]) -> list[Any]:
+        done, _ = self.ray.wait(list(handles), num_returns=1)
+        return list(done)
+
+    def result(self, handle: Any) -> StepRecord:
+        from ray.exceptions import RayTaskError
+
+        try:
+            rec: StepRecord = self.ray.get(handle)
+        except RayTaskError as exc:
+            # The step's own exception, not Ray's multi-line wrapper around it.
+            raise (exc.cause if exc.cause is not None else exc) from None
+        return rec
+
+
+def run_ray(graph: Graph, out: Path, kinds: Mapping[str, StepKind], address: str, *, retries: int = 2,
+            gpu_fraction: float = 1.0, progress: bool = True,
+            runtime_env: dict[str, Any] | None = None) -> dict[str, StepRecord]:
+    """Run every unfinished step of ``graph`` on the Ray cluster at ``address``.
+
+    ``address`` is what ``ray.init`` takes (``auto`` finds the cluster this machine
+    joined with ``ray start``; ``ray://host:10001`` or ``host:6379`` name one), or
+    ``local`` to start a private single-machine instance. ``gpu_fraction`` is the share
+    of a GPU a training step asks for (several small policies fit on one GPU);
+    ``runtime_env`` is passed to ``ray.init`` (e.g. environment variables for the workers).
+    """
+    try:
+        import ray
+    except ImportError:
+        raise LatentDriveError("--ray needs Ray: pip install 'latentdrive[ray]'") from None
+    if not 0 < gpu_fraction <= 1:
+        raise LatentDriveError(f"--gpu-fraction must be in (0, 1], got {gpu_fraction}")
+    check_kinds(graph, kinds)
+    started = not ray.is_initialized()
+    if started:
+        try:
+            if address == "local":
+                ray.init(include_dashboard=False, log_to_driver=False, runtime_env=runtime_env)
+            else:
+                ray.init(address=address, log_to_driver=False, runtime_env=runtime_env)
+        except ConnectionError as exc:
+            raise LatentDriveError(f"--ray {address}: no Ray cluster there ({str(exc).splitlines()[0]})") from None
+    try:
+        return run_graph(graph, out, kinds, _RayRunner(ray, retries, gpu_fraction), progress=progress)
+    finally:
+        if started:
+            ray.shutdown()
