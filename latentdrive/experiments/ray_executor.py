@@ -60,13 +60,14 @@ class _RayRunner:
 
 
 def run_ray(graph: Graph, out: Path, kinds: Mapping[str, StepKind], address: str, *, retries: int = 2,
-            gpu_fraction: float = 1.0, progress: bool = True,
+            gpu_fraction: float = 1.0, progress: bool = True, local_cpus: int | None = None,
             runtime_env: dict[str, Any] | None = None) -> dict[str, StepRecord]:
     """Run every unfinished step of ``graph`` on the Ray cluster at ``address``.
 
     ``address`` is what ``ray.init`` takes (``auto`` finds the cluster this machine
     joined with ``ray start``; ``ray://host:10001`` or ``host:6379`` name one), or
-    ``local`` to start a private single-machine instance. ``gpu_fraction`` is the share
+    ``local`` to start a private single-machine instance with ``local_cpus`` CPUs (all
+    by default). ``gpu_fraction`` is the share
     of a GPU a training step asks for (several small policies fit on one GPU);
     ``runtime_env`` is passed to ``ray.init`` (e.g. environment variables for the workers).
     """
@@ -81,7 +82,7 @@ def run_ray(graph: Graph, out: Path, kinds: Mapping[str, StepKind], address: str
     if started:
         try:
             if address == "local":
-                ray.init(include_dashboard=False, log_to_driver=False, runtime_env=runtime_env)
+                ray.init(num_cpus=local_cpus, include_dashboard=False, log_to_driver=False, runtime_env=runtime_env)
             else:
                 ray.init(address=address, log_to_driver=False, runtime_env=runtime_env)
         except ConnectionError as exc:

@@ -64,7 +64,8 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
     out.mkdir(parents=True, exist_ok=True)
     with dir_lock(out, "reproduce"):
         pending = graph.pending(out)
-        where = f"Ray cluster {ray}" if ray else f"{workers} worker(s)"
+        where = (f"a local Ray instance of {workers} CPU(s)" if ray == "local" else f"Ray cluster {ray}") if ray \
+            else f"{workers} worker(s)"
         say(f"study: {len(graph.order)} steps, {len(graph.order) - len(pending)} already finished; {where} -> {out}")
         atomic_write_text(out / STUDY, json.dumps({"preset": preset, "config": cfg.model_dump(mode="json")},
                                                   indent=1) + "\n")
@@ -72,7 +73,8 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
         if ray:
             from latentdrive.experiments.ray_executor import run_ray
 
-            run_ray(graph, out.resolve(), STEP_KINDS, ray, gpu_fraction=gpu_fraction, progress=progress)
+            run_ray(graph, out.resolve(), STEP_KINDS, ray, gpu_fraction=gpu_fraction, progress=progress,
+                    local_cpus=workers if ray == "local" else None)
         else:
             run_local(graph, out, STEP_KINDS, workers=workers, preload=PRELOAD, progress=progress)
         wall = time.perf_counter() - t0

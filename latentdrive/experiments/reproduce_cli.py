@@ -57,8 +57,8 @@ def add_reproduce_parsers(sub: Any) -> None:
     s.add_argument("--preset", default="quick", help="tiny (a minute), quick (default, about 30 min on 2 cores), "
                    "paper, or a .yaml file")
     s.add_argument("--seeds", type=int, default=None, help="training seeds per policy (default: the preset's)")
-    s.add_argument("--workers", type=int, default=1, help="steps run at once, each in its own process (default 1); "
-                   "results do not depend on it")
+    s.add_argument("--workers", type=int, default=1, help="steps run at once, each in its own process (default 1; "
+                   "with --ray local, the instance's CPUs); results do not depend on it")
     s.add_argument("--ray", metavar="ADDRESS", default=None,
                    help="run the steps as Ray tasks on the cluster at ADDRESS ('auto': the one this machine joined; "
                    "'local': a private instance); OUT must be on a filesystem every node sees")

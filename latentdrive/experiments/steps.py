@@ -63,7 +63,15 @@ def run_bnn(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path)
     return {k: float(v) for k, v in metrics.items()}
 
 
+def _one_thread() -> None:
+    """Steps that evaluate networks use one thread: float sums then do not depend on the
+    machine's (or the Ray worker's) thread count, and the study's numbers are the same
+    whatever runs them."""
+    torch.set_num_threads(1)
+
+
 def run_bnn_report(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:
+    _one_thread()
     cfg = validate(BNNStudyConfig, config["study"])
     runs = {name: (inputs[f"run:{name}"] / RUN, int(d), float(lam)) for name, (d, lam) in config["runs"].items()}
     report = report_bnn_runs(cfg, inputs["dataset"] / "data", runs, folder, say=_quiet)
@@ -88,7 +96,7 @@ def run_evaluate(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: 
     planner = validate(PlannerConfig, ev["planner"]) if ev.get("planner") is not None else None
     eval_set = EvaluationSet(ev["scenarios"], int(ev["episodes"]), int(ev["envs"]), ev["backend"], int(ev["seed_offset"]),
                              observation=ev.get("observation") or {}, reward=ev.get("reward") or {}, planner=planner)
-    torch.set_num_threads(1)
+    _one_thread()
     if "policy" in inputs:
         makers = policy_makers([str(inputs["policy"] / RUN)], [], eval_set, torch.device("cpu"))
     else:
@@ -101,6 +109,7 @@ def run_evaluate(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: 
 
 
 def run_probes_step(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:
+    _one_thread()
     cfg = validate(ProbeConfig, config["probe"])
     result = run_probes(cfg, config["kinds"], inputs["bnn"] / RUN if "bnn" in inputs else None)
     atomic_write_text(folder / PROBES, json.dumps(result, indent=1, allow_nan=False) + "\n")

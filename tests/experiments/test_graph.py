@@ -28,6 +28,9 @@ def _write(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) 
 
 
 KINDS = {"toy": StepKind(_write)}
+# The worker processes' fork server starts once per test session, with the preload of
+# whichever test starts it: the study's own, so that study tests run at full speed.
+PRELOAD = ("latentdrive.experiments.steps",)
 
 
 def _diamond(top: int = 1, fail_left: bool = False) -> Graph:
@@ -64,7 +67,7 @@ def test_the_graph_refuses_bad_shapes() -> None:
 
 def test_steps_run_once_in_dependency_order_and_resume_skips_them(tmp_path: Path) -> None:
     g = _diamond()
-    recs = run_local(g, tmp_path, KINDS, workers=2, progress=False)
+    recs = run_local(g, tmp_path, KINDS, workers=2, preload=PRELOAD, progress=False)
     assert recs["bottom"].summary["value"] == 1000 + (10 + 1) + (100 + 1)
     assert recs["bottom"].summary["nan"] is None  # summaries are always valid JSON
     order = _runs(tmp_path)
@@ -75,11 +78,11 @@ def test_steps_run_once_in_dependency_order_and_resume_skips_them(tmp_path: Path
     assert os.getpid() not in pids and len(pids) == len(recs)
     assert all(r.peak_rss_mb > 0 and r.wall_s >= 0 for r in recs.values())
 
-    run_local(g, tmp_path, KINDS, workers=1, progress=False)
+    run_local(g, tmp_path, KINDS, workers=1, preload=PRELOAD, progress=False)
     assert len(_runs(tmp_path)) == len(order)  # nothing ran again
 
     g2 = _diamond(top=2)
-    run_local(g2, tmp_path, KINDS, workers=1, progress=False)
+    run_local(g2, tmp_path, KINDS, workers=1, preload=PRELOAD, progress=False)
     assert len(_runs(tmp_path)) == len(order) + 4  # the changed step and its descendants
     assert g.record(tmp_path, "top") is not None  # the old version is left alone
 
@@ -87,7 +90,7 @@ def test_steps_run_once_in_dependency_order_and_resume_skips_them(tmp_path: Path
 def test_a_failed_step_costs_only_its_descendants(tmp_path: Path) -> None:
     g = _diamond(fail_left=True)
     with pytest.raises(StepFailed) as info:
-        run_local(g, tmp_path, KINDS, workers=2, progress=False)
+        run_local(g, tmp_path, KINDS, workers=2, preload=PRELOAD, progress=False)
     msg = str(info.value)
     assert "left: this step always fails" in msg and "second line" not in msg and "1 steps that need them" in msg
     assert g.record(tmp_path, "right") is not None and g.record(tmp_path, "alone") is not None
@@ -100,13 +103,13 @@ def test_an_interrupted_step_runs_again_from_a_clean_folder(tmp_path: Path) -> N
     stale = g.folder(tmp_path, "top")
     stale.mkdir(parents=True)
     (stale / "half-written.tmp").write_text("x")  # what a killed attempt leaves: no done.json
-    run_local(g, tmp_path, KINDS, workers=1, progress=False)
+    run_local(g, tmp_path, KINDS, workers=1, preload=PRELOAD, progress=False)
     assert not (stale / "half-written.tmp").exists() and (stale / DONE).exists()
 
 
 def test_a_foreign_record_is_a_one_line_error(tmp_path: Path) -> None:
     g = _diamond()
-    run_local(g, tmp_path, KINDS, workers=1, progress=False)
+    run_local(g, tmp_path, KINDS, workers=1, preload=PRELOAD, progress=False)
     path = g.folder(tmp_path, "alone") / DONE
     data = json.loads(path.read_text())
     path.write_text(json.dumps({**data, "key": "0" * 12}))

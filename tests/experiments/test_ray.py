@@ -34,7 +34,7 @@ def test_the_tiny_study_through_ray_gives_the_numbers_of_local_workers(tiny_stud
             "evaluate/policy/raw/merge/s0", "evaluate/ref/plan", "probes"]
     for name in redo:
         shutil.rmtree(graph.folder(out, name))
-    assert main(["reproduce", str(out), "--preset", "tiny", "--ray", "local", "-q"]) == 0
+    assert main(["reproduce", str(out), "--preset", "tiny", "--ray", "local", "--workers", "2", "-q"]) == 0
     assert all(graph.record(out, n) is not None for n in redo)
     assert study_numbers(out) == study_numbers(tiny_study)
 
