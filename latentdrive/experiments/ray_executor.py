@@ -6,9 +6,10 @@ study started locally can finish on a cluster (or the reverse). Every node must 
 study folder at the same path (a shared filesystem); a step whose inputs are missing on
 its node fails with a one-line error naming the path.
 
-Each step is one task in a fresh worker process (``max_calls=1``: its peak memory is its
-own), asking for its kind's CPUs and, when the cluster has GPUs, a share of one for the
-kinds that use it. A task whose worker dies (a killed process, a lost node) is retried by
+Each step is one task, asking for its kind's CPUs and, when the cluster has GPUs, a share
+of one for the kinds that use it. Ray reuses worker processes (a fresh one per step cost
+seconds of imports each); each step resets the process's peak-memory mark, so it still
+records its own peak. A task whose worker dies (a killed process, a lost node) is retried by
 Ray up to ``retries`` times; an error raised by the step itself is not retried (it would
 fail the same way) and is reported with the step's name.
 
@@ -35,7 +36,7 @@ class _RayRunner:
         self.slots = max(1, int(res.get("CPU", 1)))
         self.has_gpu = res.get("GPU", 0) > 0
         self.retries, self.gpu_fraction = retries, gpu_fraction
-        self.remote = ray.remote(max_calls=1)(execute_step)
+        self.remote = ray.remote(execute_step)
 
     def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
                write_record: Callable[[StepRecord], None]) -> Any:
