@@ -19,7 +19,7 @@ from latentdrive.fileio import atomic_write_bytes
 from latentdrive.observe import CHANNELS
 from latentdrive.scene import Kind, Scene
 
-__all__ = ["draw_scene", "save_show_figure"]
+__all__ = ["draw_scene", "save_png", "save_show_figure"]
 
 _COLORS = {"hv": "#3b75af", "av": "#2ca02c", "observer": "#d62728", "crashed": "#000000"}
 
@@ -98,8 +98,13 @@ def save_show_figure(
                 ax.set_title(name)
     axes[0, 0].set_title("scene (red: observing AV, green: AVs, blue: HVs)", fontsize=9)
     fig.suptitle(title)
+    return save_png(fig, path, dpi=80, tight_bbox=False)
+
+
+def save_png(fig: plt.Figure, path: str | Path, dpi: int = 90, tight_bbox: bool = True) -> Path:
+    """Write ``fig`` as a PNG atomically (a reader never sees half a figure) and close it."""
     fig.tight_layout()
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=80)
+    fig.savefig(buf, format="png", dpi=dpi, bbox_inches="tight" if tight_bbox else None)
     plt.close(fig)
     return atomic_write_bytes(path, buf.getvalue())

@@ -51,7 +51,7 @@ from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.models.vfan import Mode, QNetwork, VFANConfig
 from latentdrive.rollout import Policy, PolicyInput, rollout
 from latentdrive.runtime import resolve_device
-from latentdrive.scenarios import SCENARIOS, ScenarioSpec, get_spec
+from latentdrive.scenarios import SCENARIOS, ScenarioSpec, check_scenario_names
 from latentdrive.seeds import MAX_ENVS, PROBE_SETS, probe_reset_seed
 from latentdrive.sim.fast import FastBatch
 from latentdrive.sim.fast.network import Network, get_network
@@ -249,11 +249,7 @@ class ProbeConfig(Config):
     @field_validator("scenarios")
     @classmethod
     def _known(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        for name in v:
-            get_spec(name)  # raises ConfigError naming the scenario
-        if len(set(v)) != len(v):
-            raise ValueError(f"scenarios repeat a name: {', '.join(v)}")
-        return v
+        return check_scenario_names(v)
 
 
 def _finite(x: float) -> float | None:

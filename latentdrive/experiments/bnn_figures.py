@@ -3,7 +3,6 @@ latent_rep), plus the scenario distance matrices the paper names but never shows
 
 from __future__ import annotations
 
-import io
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -18,21 +17,13 @@ import torch
 from latentdrive.bnn.train import load_trained_bottleneck
 from latentdrive.experiments.bnn_report import epoch_rows
 from latentdrive.experiments.heldout import HeldOut
-from latentdrive.fileio import atomic_write_bytes
 from latentdrive.models.bottleneck import BottleneckNetwork
 from latentdrive.observe import CHANNELS
+from latentdrive.viz import save_png
 
 __all__ = ["write_bnn_figures"]
 
 SHOWN = ("roundabout", "intersection")
-
-
-def _save(fig: plt.Figure, path: Path) -> Path:
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return atomic_write_bytes(path, buf.getvalue())
 
 
 def loss_curves(figures: Path, runs: Mapping[str, Path], input_recall: float | None = None) -> Path:
@@ -59,7 +50,7 @@ def loss_curves(figures: Path, runs: Mapping[str, Path], input_recall: float | N
     ax_r.set_ylim(0, 1)
     ax_r.legend(fontsize=7)
     ax_r.set_title("Vehicles recovered: half their peak value within one cell")
-    return _save(fig, figures / "bnn_loss.png")
+    return save_png(fig, figures / "bnn_loss.png")
 
 
 def _channels_of(recon: np.ndarray) -> np.ndarray:
@@ -93,7 +84,7 @@ def reconstructions(figures: Path, data: HeldOut, runs: Mapping[str, Path], note
                 if 4 * k + c == 0:
                     ax.set_ylabel(rows[r], fontsize=9)
     fig.suptitle("Reconstruction from held-out noisy input, latest frame (the paper's reconstruction figure)")
-    return _save(fig, figures / "bnn_reconstruction.png")
+    return save_png(fig, figures / "bnn_reconstruction.png")
 
 
 def latents_before_after(figures: Path, data: HeldOut, run_name: str, run: Path, train_seed: int) -> Path:
@@ -118,7 +109,7 @@ def latents_before_after(figures: Path, data: HeldOut, run_name: str, run: Path,
     axes[-1, 0].set_xlabel("latent unit")
     axes[-1, 1].set_xlabel("latent unit")
     fig.suptitle(f"Latent representation ({run_name})")
-    return _save(fig, figures / "bnn_latents.png")
+    return save_png(fig, figures / "bnn_latents.png")
 
 
 def distance_matrices(figures: Path, report: dict[str, Any]) -> Path:
@@ -137,7 +128,7 @@ def distance_matrices(figures: Path, report: dict[str, Any]) -> Path:
         off = m[~np.eye(len(m), dtype=bool)].mean() if len(m) > 1 else float("nan")
         ax.set_title(f"{title}\nmean off-diagonal {off:.3f}", fontsize=9)
     fig.suptitle("Scenario distance: MMD² between scenarios' distributions")
-    return _save(fig, figures / "bnn_distance.png")
+    return save_png(fig, figures / "bnn_distance.png")
 
 
 def _recall_notes(report: dict[str, Any]) -> dict[str, str]:

@@ -36,7 +36,7 @@ from latentdrive.experiments.bnn import BNNStudyConfig, run_name, study_runs
 from latentdrive.experiments.graph import Graph, Step
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.rl.policy import scenario_hashes
-from latentdrive.scenarios import SCENARIOS, RewardConfig, get_spec
+from latentdrive.scenarios import SCENARIOS, RewardConfig, check_scenario_names
 
 __all__ = ["PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config"]
 
@@ -101,11 +101,7 @@ class ReproduceConfig(Config):
     @field_validator("scenarios")
     @classmethod
     def _scenarios(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        for name in v:
-            get_spec(name)
-        if len(set(v)) != len(v):
-            raise ValueError("scenarios repeat a name")
-        return v
+        return check_scenario_names(v)
 
     @model_validator(mode="after")
     def _consistent(self) -> ReproduceConfig:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import io
 from pathlib import Path
 from typing import Any
 
@@ -12,19 +11,11 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt
 import numpy as np
 
-from latentdrive.fileio import atomic_write_bytes
+from latentdrive.viz import save_png
 
 __all__ = ["write_study_figures"]
 
 COLORS = {"raw": "C0", "latent": "C1", "latent-random": "C2", "end-to-end": "C3", "latent-lam": "C4"}
-
-
-def _save(fig: plt.Figure, path: Path) -> Path:
-    fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
-    plt.close(fig)
-    return atomic_write_bytes(path, buf.getvalue())
 
 
 def _err(entry: dict[str, Any]) -> tuple[float, float]:
@@ -58,7 +49,7 @@ def headline(res: dict[str, Any], path: Path) -> Path:
     axes[0].set_ylabel("share of episodes")
     axes[0].legend(fontsize=7)
     fig.suptitle("Bottleneck (latent) vs baseline (raw): each scenario's own policy, and the mix policy on the mix")
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def matrices(res: dict[str, Any], path: Path) -> Path:
@@ -79,7 +70,7 @@ def matrices(res: dict[str, Any], path: Path) -> Path:
         ax.set_ylabel("trained on")
         ax.set_title(f"failure rate: {title}", fontsize=10)
     fig.suptitle("Train × test (mean over training seeds); below zero on the right: the bottleneck fails less")
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def transfer(res: dict[str, Any], path: Path) -> Path:
@@ -99,7 +90,7 @@ def transfer(res: dict[str, Any], path: Path) -> Path:
         ax.legend(fontsize=8)
     axes[0].set_ylabel("failure rate (periodic held-out evaluation)")
     fig.suptitle("Transfer learning: pretrained on the other scenarios, then fine-tuned (solid), vs from scratch (dashed)")
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def leave_one_out(res: dict[str, Any], path: Path) -> Path:
@@ -119,7 +110,7 @@ def leave_one_out(res: dict[str, Any], path: Path) -> Path:
         ax.set_ylim(0, 1.02)
         ax.legend(fontsize=8)
     fig.suptitle("Leave one scenario out: does a smaller scenario distance predict better transfer?")
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def ablations(res: dict[str, Any], path: Path) -> Path:
@@ -138,7 +129,7 @@ def ablations(res: dict[str, Any], path: Path) -> Path:
     ax.set_ylabel("failure rate on the mixed test set")
     ax.legend(fontsize=8)
     ax.set_title("Ablations on the mix: is the gain the representation or the architecture?")
-    return _save(fig, path)
+    return save_png(fig, path)
 
 
 def write_study_figures(res: dict[str, Any], figures: Path) -> list[Path]:

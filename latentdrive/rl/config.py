@@ -10,7 +10,7 @@ from latentdrive.config import Config, ConfigError, ObservationConfig
 from latentdrive.models.vfan import MODES, Mode, VFANConfig
 from latentdrive.rl.dqn import DQNConfig
 from latentdrive.runtime import check_device
-from latentdrive.scenarios import RewardConfig, get_spec
+from latentdrive.scenarios import RewardConfig, check_scenario_names
 
 __all__ = ["PolicyTrainConfig", "check_mission_pays"]
 
@@ -39,11 +39,7 @@ class PolicyTrainConfig(Config):
     @field_validator("scenarios")
     @classmethod
     def _known(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        for name in v:
-            get_spec(name)  # raises ConfigError naming the scenario
-        if len(set(v)) != len(v):
-            raise ValueError(f"scenarios repeat a name: {', '.join(v)}")
-        return v
+        return check_scenario_names(v)
 
     _check_device = field_validator("device")(check_device)
 

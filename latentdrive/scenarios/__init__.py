@@ -28,6 +28,7 @@ __all__ = [
     "ScenarioError",
     "ScenarioSpec",
     "SpawnRegion",
+    "check_scenario_names",
     "get_spec",
 ]
 
@@ -57,3 +58,13 @@ def get_spec(scenario: str | ScenarioSpec, **overrides: Any) -> ScenarioSpec:
             f"unknown scenario {scenario!r}: choose one of {', '.join(SCENARIOS)} or a .yaml spec file"
         )
     return validate(ScenarioSpec, merge_overrides(base, overrides), prefix="scenario.")
+
+
+def check_scenario_names(names: tuple[str, ...]) -> tuple[str, ...]:
+    """``names`` if each is a known scenario (or spec file) and none repeats; for config
+    validators. Raises :class:`ConfigError` naming an unknown one, ``ValueError`` a repeat."""
+    for name in names:
+        get_spec(name)
+    if len(set(names)) != len(names):
+        raise ValueError(f"scenarios repeat a name: {', '.join(names)}")
+    return names
