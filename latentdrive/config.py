@@ -28,6 +28,7 @@ __all__ = [
     "NoiseConfig",
     "ObservationConfig",
     "config_hash",
+    "load_preset",
     "load_yaml",
     "merge_overrides",
     "parse_override_args",
@@ -197,3 +198,16 @@ class ObservationConfig(Config):
     def shape(self) -> tuple[int, int, int, int]:
         """Per-agent observation shape ``(4, T, H, W)``."""
         return (4, self.frames, self.height, self.width)
+
+
+def load_preset(model: type[C], preset: str, presets: Mapping[str, Path],
+                overrides: Mapping[str, Any] | None = None) -> C:
+    """``model`` from a named preset (a key of ``presets``, which maps names to YAML files)
+    or a ``.yaml`` file, with dotted ``overrides`` merged in; one-line errors for the rest."""
+    if preset in presets:
+        data = load_yaml(presets[preset])
+    elif preset.endswith((".yaml", ".yml")):
+        data = load_yaml(preset)
+    else:
+        raise ConfigError(f"unknown preset {preset!r}: choose one of {', '.join(presets)} or a .yaml file")
+    return validate(model, merge_overrides(data, overrides or {}))

@@ -179,7 +179,7 @@ CASES = [
     ("study-into-another-dataset", "bnn-study {w}/study_other --preset tiny -q", "holds a dataset of config"),
     ("study-into-a-file", "bnn-study {w}/a_file --preset tiny -q", "not a folder"),
     ("study-binary-preset", "bnn-study {w}/new_study --preset {w}/bin.yaml -q", "not UTF-8"),
-    ("study-unknown-preset", "bnn-study {w}/new_study --preset huge -q", "unknown study preset"),
+    ("study-unknown-preset", "bnn-study {w}/new_study --preset huge -q", "unknown preset"),
     # Policies: foreign checkpoints, configs that are not configs, unknown scenarios.
     ("policy-foreign-bnn", "train-policy {w}/new_pol --mode latent --bnn {w}/bnn_foreign -q", "not a latentdrive checkpoint"),
     ("evaluate-foreign-checkpoint", "evaluate {w}/pol_foreign --policy none --episodes 1 -q", "not a latentdrive checkpoint"),

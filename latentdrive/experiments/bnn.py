@@ -38,7 +38,7 @@ from latentdrive.bnn.train import (
     train_bnn,
 )
 from latentdrive.bnn.vehicles import VehicleCounts
-from latentdrive.config import Config, ConfigError, load_yaml, merge_overrides, validate
+from latentdrive.config import Config, ConfigError, load_preset, validate
 from latentdrive.data.collect import (
     CollectConfig,
     check_collect_target,
@@ -93,13 +93,7 @@ class BNNStudyConfig(Config):
 
 def load_study_config(preset: str, overrides: dict[str, Any] | None = None) -> BNNStudyConfig:
     """A named preset (``tiny``, ``small``, ``paper``) or a YAML file, with dotted overrides."""
-    if preset in STUDY_PRESETS:
-        data = load_yaml(PRESETS_DIR / f"bnn-{preset}.yaml")
-    elif preset.endswith((".yaml", ".yml")):
-        data = load_yaml(preset)
-    else:
-        raise ConfigError(f"unknown study preset {preset!r}: choose one of {', '.join(STUDY_PRESETS)} or a .yaml file")
-    return validate(BNNStudyConfig, merge_overrides(data, overrides or {}))
+    return load_preset(BNNStudyConfig, preset, {p: PRESETS_DIR / f"bnn-{p}.yaml" for p in STUDY_PRESETS}, overrides)
 
 
 def run_name(latent_dim: int, lam: float = 0.0) -> str:

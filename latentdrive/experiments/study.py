@@ -26,7 +26,7 @@ from latentdrive.config import (
     Config,
     ConfigError,
     ObservationConfig,
-    load_yaml,
+    load_preset,
     merge_overrides,
     validate,
 )
@@ -131,13 +131,7 @@ class ReproduceConfig(Config):
 
 def load_reproduce_config(preset: str, overrides: dict[str, Any] | None = None) -> ReproduceConfig:
     """A named preset (``tiny``, ``quick``, ``paper``) or a YAML file, with dotted overrides applied."""
-    if preset in PRESETS:
-        data = load_yaml(PRESETS_DIR / f"reproduce-{preset}.yaml")
-    elif preset.endswith((".yaml", ".yml")):
-        data = load_yaml(preset)
-    else:
-        raise ConfigError(f"unknown preset {preset!r}: choose one of {', '.join(PRESETS)} or a .yaml file")
-    return validate(ReproduceConfig, merge_overrides(data, overrides or {}))
+    return load_preset(ReproduceConfig, preset, {p: PRESETS_DIR / f"reproduce-{p}.yaml" for p in PRESETS}, overrides)
 
 
 def _policy_name(rep: str, train_set: str, seed: int) -> str:
