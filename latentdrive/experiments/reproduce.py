@@ -35,7 +35,10 @@ def _environment() -> dict[str, Any]:
     import numpy as np
     import torch
 
-    return {"python": platform.python_version(), "torch": torch.__version__, "numpy": np.__version__,
+    from latentdrive import __version__
+
+    return {"latentdrive": __version__, "python": platform.python_version(), "torch": torch.__version__,
+            "numpy": np.__version__,
             "machine": platform.machine(), "cpus": _cpus(), "cuda": torch.cuda.is_available(),
             "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
 

@@ -209,8 +209,8 @@ def write_report(res: dict[str, Any], out: Path) -> str:
            f"- Last run: {meta['last_run'].get('wall_s', '–')} s wall with {meta['last_run'].get('workers', '–')} "
            f"worker(s); {total:.0f} s of step time in all (finished steps of earlier runs included).",
            f"- Peak memory of a step: {max(s['peak_rss_mb'] for s in steps.values()):.0f} MB.",
-           f"- Machine: {env['machine']}, {env['cpus']} CPUs, GPU: {env['gpu'] or 'none'}; Python {env['python']}, "
-           f"torch {env['torch']}, numpy {env['numpy']}.", ""]
+           f"- Machine: {env['machine']}, {env['cpus']} CPUs, GPU: {env['gpu'] or 'none'}; latentdrive "
+           f"{env.get('latentdrive', '–')}, Python {env['python']}, torch {env['torch']}, numpy {env['numpy']}.", ""]
     md += _table(["step kind", "steps", "total s", "longest s"],
                  [[k, str(len(v)), f"{sum(v):.0f}", f"{max(v):.0f}"] for k, v in sorted(by_kind.items())])
     md += ["", "## Config", "", "```yaml", yaml.safe_dump(meta["config"], sort_keys=False).rstrip(), "```", ""]
