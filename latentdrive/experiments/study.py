@@ -112,6 +112,11 @@ class ReproduceConfig(Config):
             raise ValueError(f"experiments.transfer_target {t!r} is not one of the scenarios")
         if self.experiments.ablations and not self.bnn.lambdas:
             raise ValueError("experiments.ablations needs a λ > 0 BNN (bnn.lambdas)")
+        if self.experiments.ablations and self.policy_bnn != max(self.bnn.latent_dims):
+            # The λ > 0 BNN is trained at the largest d: compared at another d, the ablation
+            # would mix the effect of λ with that of d.
+            raise ValueError(f"experiments.ablations compares the λ > 0 BNN (d = {max(self.bnn.latent_dims)}) with "
+                             f"the latent policies' BNN: policy_bnn must be {max(self.bnn.latent_dims)}")
         return self
 
     def policy_config(self, mode: str, scenarios: tuple[str, ...], seed: int, steps: int) -> PolicyTrainConfig:

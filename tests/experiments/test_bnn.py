@@ -63,7 +63,7 @@ def test_held_out_episodes_are_not_trained_on(tiny_study):
 def test_run_names_and_presets():
     assert run_name(64) == "d64" and run_name(64, 0.01) == "d64-lam0.01"
     assert load_study_config("small").latent_dims == [16, 32, 64]
-    with pytest.raises(ConfigError, match="unknown preset .huge."):
+    with pytest.raises(ConfigError, match="unknown preset 'huge'"):
         load_study_config("huge")
     with pytest.raises(ConfigError, match="lambdas"):
         load_study_config("tiny", {"lambdas": [0.0]})

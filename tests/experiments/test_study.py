@@ -1,0 +1,49 @@
+"""The study's graph: which policies it trains on what, and the configs it refuses."""
+
+from __future__ import annotations
+
+import collections
+
+import pytest
+
+from latentdrive.config import ConfigError
+from latentdrive.experiments.study import build_graph, load_reproduce_config
+
+
+def test_the_tiny_graph_holds_every_experiment_with_the_right_inputs() -> None:
+    g = build_graph(load_reproduce_config("tiny"))
+    kinds = collections.Counter(s.kind for s in g.steps.values())
+    # 3 scenarios: per representation 3 oracles + mix + 3 leave-one-out + 1 fine-tuned; 3 ablations.
+    assert kinds["policy"] == 2 * 8 + 3 and kinds["evaluate"] == kinds["policy"] + 3
+    assert kinds["bnn"] == 3 and kinds["dataset"] == 1 and kinds["probes"] == 1
+    ft = g.steps["policy/latent/roundabout-finetuned/s0"]
+    assert ft.inputs == {"bnn": "bnn/d8", "init": "policy/latent/without-roundabout/s0"}
+    assert ft.config["train"]["scenarios"] == ["roundabout"]
+    assert g.steps["policy/latent/without-roundabout/s0"].config["train"]["scenarios"] == ["intersection", "merge"]
+    assert g.steps["policy/latent-lam/mixed/s0"].inputs == {"bnn": "bnn/d8-lam0.01"}
+    assert g.steps["policy/latent-lam/mixed/s0"].config["train"]["mode"] == "latent"
+    assert "bnn" not in g.steps["policy/raw/mixed/s0"].inputs
+    # Every policy and reference meets the same evaluation episodes.
+    evals = [s.config["eval"] for s in g.steps.values() if s.kind == "evaluate"]
+    assert len({(e["episodes"], e["envs"], e["seed_offset"], tuple(e["scenarios"])) for e in evals}) == 1
+
+
+def test_more_seeds_add_policies_and_leave_the_first_seed_untouched() -> None:
+    one = build_graph(load_reproduce_config("tiny"))
+    two = build_graph(load_reproduce_config("tiny", {"seeds": 2}))
+    assert all(two.keys[n] == k for n, k in one.keys.items())
+    assert "policy/raw/mixed/s1" in two.steps and "policy/raw/mixed/s1" not in one.steps
+
+
+@pytest.mark.parametrize(("override", "needle"), [
+    ({"policy_bnn": 5}, "not among bnn.latent_dims"),
+    ({"policy_bnn": 4}, "policy_bnn must be 8"),
+    ({"experiments": {"transfer_target": "highway"}}, "not one of the scenarios"),
+    ({"scenarios": ["merge", "merge"]}, "repeat a name"),
+    ({"scenarios": ["merge", "moon"]}, "unknown scenario 'moon'"),
+    ({"evaluate": {"references": ["oracle"]}}, "unknown reference policy 'oracle'"),
+    ({"policy": {"train": {"dqn": {"gamma": 0.999}}}}, "reward.mission"),
+])
+def test_inconsistent_studies_are_refused_with_the_field_named(override: dict, needle: str) -> None:
+    with pytest.raises(ConfigError, match=needle):
+        build_graph(load_reproduce_config("tiny", override))
