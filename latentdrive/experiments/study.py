@@ -55,6 +55,10 @@ class StudyPolicyConfig(Config):
     steps: int = Field(40_000, ge=1, le=10**10, description="Agent-transitions per policy trained from scratch.")
     finetune_steps: int = Field(10_000, ge=1, le=10**10, description="Agent-transitions of fine-tuning on the transfer target.")
     train: dict[str, Any] = Field(default_factory=dict, description="Further train-policy settings for every policy (dqn, vfan, envs, segment, eval_every, eval_episodes, threads, device); checked when the study is built.")
+    finetune: dict[str, Any] = Field(
+        default_factory=lambda: {"dqn": {"eps_start": 0.2, "learning_starts": 500}},
+        description="Settings that fine-tuning runs add to train: a pretrained policy needs less exploration, and a "
+                    "short budget cannot wait for the default 2,000 transitions before learning.")
 
 
 class StudyEvalConfig(Config):
@@ -119,11 +123,14 @@ class ReproduceConfig(Config):
                              f"the latent policies' BNN: policy_bnn must be {max(self.bnn.latent_dims)}")
         return self
 
-    def policy_config(self, mode: str, scenarios: tuple[str, ...], seed: int, steps: int) -> PolicyTrainConfig:
+    def policy_config(self, mode: str, scenarios: tuple[str, ...], seed: int, steps: int,
+                      finetune: bool = False) -> PolicyTrainConfig:
         """The train-policy config of one study policy (its BNN and initial weights are inputs)."""
         data = merge_overrides({"mode": mode, "scenarios": list(scenarios), "seed": seed, "steps": steps,
                                 "observation": self.observation.model_dump(), "reward": self.reward.model_dump()},
                                self.policy.train)
+        if finetune:
+            data = merge_overrides(data, self.policy.finetune)
         if mode == "latent":
             data["bnn"] = "(the study's BNN)"  # a placeholder for validation; the step fills in the path
         try:
@@ -174,7 +181,7 @@ def build_graph(cfg: ReproduceConfig) -> Graph:
 
     def policy(rep: str, train_set: str, scenarios: tuple[str, ...], seed: int, steps_: int, init: str | None = None) -> str:
         mode = "latent" if rep == "latent-lam" else rep
-        pcfg = cfg.policy_config(mode, scenarios, seed, steps_).model_dump(mode="json")
+        pcfg = cfg.policy_config(mode, scenarios, seed, steps_, finetune=init is not None).model_dump(mode="json")
         pcfg.update(bnn=None, init_from=None)
         inputs = {"bnn": bnn_for[rep]} if rep in bnn_for else {}
         if init is not None:

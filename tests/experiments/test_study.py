@@ -19,6 +19,8 @@ def test_the_tiny_graph_holds_every_experiment_with_the_right_inputs() -> None:
     ft = g.steps["policy/latent/roundabout-finetuned/s0"]
     assert ft.inputs == {"bnn": "bnn/d8", "init": "policy/latent/without-roundabout/s0"}
     assert ft.config["train"]["scenarios"] == ["roundabout"]
+    assert ft.config["train"]["dqn"]["eps_start"] == 0.2  # fine-tuning explores less
+    assert g.steps["policy/latent/roundabout/s0"].config["train"]["dqn"]["eps_start"] == 1.0
     assert g.steps["policy/latent/without-roundabout/s0"].config["train"]["scenarios"] == ["intersection", "merge"]
     assert g.steps["policy/latent-lam/mixed/s0"].inputs == {"bnn": "bnn/d8-lam0.01"}
     assert g.steps["policy/latent-lam/mixed/s0"].config["train"]["mode"] == "latent"
