@@ -20,8 +20,8 @@ import shutil
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import dataclass
+from multiprocessing.connection import wait as mp_wait
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -142,20 +142,74 @@ class Runner(Protocol):
         """The record of a finished step, or its exception raised."""
 
 
-class _Pool:
-    def __init__(self, pool: ProcessPoolExecutor, slots: int) -> None:
-        self.pool, self.slots = pool, slots
+class _Handle:
+    """A step running in its own process, with the pipe its result comes back on."""
+
+    def __init__(self, process: Any, conn: Any) -> None:
+        self.process, self.conn = process, conn
+
+
+def _child(conn: Any, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
+           write_record: Callable[[StepRecord], None]) -> None:
+    """A worker process: run one step, send back its record or its error's first line."""
+    try:
+        conn.send((True, execute_step(kind, step, key, inputs, folder, write_record)))
+    except BaseException as exc:  # reported by the driver with the step's name
+        conn.send((False, f"{first_line(exc)}" if isinstance(exc, LatentDriveError) else
+                   f"{type(exc).__name__}: {first_line(exc)}"))
+    finally:
+        conn.close()
+
+
+class _Processes:
+    """One fresh process per step. A process that dies (killed, out of memory) fails its own
+    step only; a pool would break and take every running step down with it."""
+
+    def __init__(self, ctx: Any, slots: int) -> None:
+        self.ctx, self.slots = ctx, slots
+        self.live: set[_Handle] = set()
 
     def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
                write_record: Callable[[StepRecord], None]) -> Any:
-        return self.pool.submit(execute_step, kind, step, key, inputs, folder, write_record)
+        recv, send = self.ctx.Pipe(duplex=False)
+        p = self.ctx.Process(target=_child, args=(send, kind, step, key, inputs, folder, write_record),
+                             name=f"latentdrive step {step.name}")
+        p.start()
+        send.close()
+        h = _Handle(p, recv)
+        self.live.add(h)
+        return h
 
     def wait(self, handles: Sequence[Any]) -> list[Any]:
-        return list(wait(handles, return_when=FIRST_COMPLETED)[0])
+        # A result arriving, or a process ending without one, wakes the driver; waiting on
+        # the pipe too means a child never blocks on a full pipe while the driver waits.
+        ready = set(mp_wait([x for h in handles for x in (h.conn, h.process.sentinel)]))
+        return [h for h in handles if h.conn in ready or h.process.sentinel in ready]
 
     def result(self, handle: Any) -> StepRecord:
-        rec: StepRecord = handle.result()
+        h: _Handle = handle
+        try:
+            msg = h.conn.recv() if h.conn.poll() else None
+        except EOFError:  # the pipe closed with nothing in it: the process died
+            msg = None
+        h.process.join()
+        h.conn.close()
+        self.live.discard(h)
+        if msg is None:
+            code = h.process.exitcode
+            how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+            raise LatentDriveError(f"its worker process died ({how}) before finishing")
+        ok, value = msg
+        if not ok:
+            raise LatentDriveError(value)
+        rec: StepRecord = value
         return rec
+
+    def stop(self) -> None:
+        for h in list(self.live):
+            h.process.terminate()
+        for h in list(self.live):
+            h.process.join()
 
 
 def check_kinds(graph: Graph, kinds: Mapping[str, StepKind]) -> None:
@@ -177,12 +231,11 @@ def run_local(graph: Graph, out: Path, kinds: Mapping[str, StepKind], workers: i
     check_kinds(graph, kinds)
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(list(preload))
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, max_tasks_per_child=1) as pool:
-        try:
-            return run_graph(graph, out, kinds, _Pool(pool, workers), progress=progress, on_done=on_done)
-        except KeyboardInterrupt:
-            pool.shutdown(wait=False, cancel_futures=True)
-            raise
+    runner = _Processes(ctx, workers)
+    try:
+        return run_graph(graph, out, kinds, runner, progress=progress, on_done=on_done)
+    finally:
+        runner.stop()  # after an interrupt: the running steps stop too, and run again next time
 
 
 def run_graph(graph: Graph, out: Path, kinds: Mapping[str, StepKind], runner: Runner, progress: bool = True,

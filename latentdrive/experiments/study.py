@@ -92,7 +92,7 @@ class StudyExperimentsConfig(Config):
 class ReproduceConfig(Config):
     """Everything that defines a ``latentdrive reproduce`` study."""
 
-    scenarios: tuple[str, ...] = Field(SCENARIOS, min_length=2, description="The scenarios (presets or spec files); the mix is all of them.")
+    scenarios: tuple[str, ...] = Field(SCENARIOS, min_length=2, description="The scenarios (preset names); the mix is all of them.")
     seeds: int = Field(3, ge=1, le=100, description="Training seeds per policy (0 .. seeds-1); evaluation seeds are disjoint from them.")
     observation: ObservationConfig = Field(default_factory=ObservationConfig, description="VelocityMap of the dataset, the BNNs and every policy.")
     reward: RewardConfig = Field(default_factory=RewardConfig, description="Reward weights of training (rates do not depend on them).")
@@ -105,7 +105,13 @@ class ReproduceConfig(Config):
     @field_validator("scenarios")
     @classmethod
     def _scenarios(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        return check_scenario_names(v)
+        check_scenario_names(v)
+        # Results match episodes to scenarios by the spec's own name, which a spec file
+        # need not share with its path: a study takes the named presets only.
+        files = [n for n in v if n not in SCENARIOS]
+        if files:
+            raise ValueError(f"a study takes scenario names ({', '.join(SCENARIOS)}), not spec files: {files[0]}")
+        return v
 
     @model_validator(mode="after")
     def _consistent(self) -> ReproduceConfig:

@@ -244,10 +244,23 @@ def _check_resume(run_dir: Path, cfg: PolicyTrainConfig) -> None:
                           "was trained; train a new run")
     saved = data["train"]
     now = cfg.model_dump(mode="json")
-    # The budget may grow on resumption; everything else must match.
-    changed = sorted(k for k in now if k != "steps" and saved.get(k) != now[k])
+    # The budget may grow on resumption; everything else must match. The BNN and init_from
+    # are folders, which may have moved (a study folder finished elsewhere): the weights
+    # come from the checkpoint, and only the encoder's are checked, by value.
+    changed = sorted(k for k in now if k not in ("steps", "bnn", "init_from") and saved.get(k) != now[k])
     if changed:
         raise ConfigError(f"{run_dir}: --resume with a different config ({', '.join(changed)} changed)")
+    if cfg.mode == "latent" and saved.get("bnn") != now["bnn"]:
+        mine = build_network(cfg, encoder_config(cfg), load_bnn_weights=True).state_dict()
+        if not _same_encoder(mine, load_policy_network(run_dir)[0].state_dict()):
+            raise ConfigError(f"{run_dir}: --resume with another BNN ({cfg.bnn} holds other weights than the "
+                              f"run's {saved.get('bnn')})")
+
+
+def _same_encoder(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
+    """The frozen encoder weights of two latent-mode networks are equal."""
+    keys = [k for k in a if k.startswith("encoder.")]
+    return all(k in b and torch.equal(a[k], b[k]) for k in keys)
 
 
 class _Log:
@@ -306,7 +319,7 @@ def _init_weights(cfg: PolicyTrainConfig) -> dict[str, torch.Tensor]:
         raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's")
     # Its weights include the frozen encoder: the run would not use the BNN its config names.
     # Compared by weights, not by path, so a study folder can move or be mounted elsewhere.
-    if cfg.mode == "latent" and not all(torch.equal(mine[k], theirs[k]) for k in mine if k.startswith("encoder.")):
+    if cfg.mode == "latent" and not _same_encoder(mine, theirs):
         raise ConfigError(f"--init-from {cfg.init_from}: it was trained on another BNN than {cfg.bnn} "
                           f"(its config names {src_cfg.bnn})")
     return theirs

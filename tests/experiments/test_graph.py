@@ -24,6 +24,8 @@ def _write(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) 
         log.write(f"{folder.name}\n")
     if config.get("fail"):
         raise ValueError("this step always fails\nsecond line")
+    if config.get("die"):
+        os.kill(os.getpid(), 9)  # as the kernel's out-of-memory killer would
     return {"value": total, "pid": os.getpid(), "nan": float("nan")}
 
 
@@ -92,7 +94,8 @@ def test_a_failed_step_costs_only_its_descendants(tmp_path: Path) -> None:
     with pytest.raises(StepFailed) as info:
         run_local(g, tmp_path, KINDS, workers=2, preload=PRELOAD, progress=False)
     msg = str(info.value)
-    assert "left: this step always fails" in msg and "second line" not in msg and "1 steps that need them" in msg
+    assert "left: ValueError: this step always fails" in msg and "second line" not in msg
+    assert "1 steps that need them" in msg
     assert g.record(tmp_path, "right") is not None and g.record(tmp_path, "alone") is not None
     assert g.record(tmp_path, "left") is None and g.record(tmp_path, "bottom") is None
     assert not (g.folder(tmp_path, "bottom")).exists()
@@ -119,3 +122,14 @@ def test_a_foreign_record_is_a_one_line_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
         g.record(tmp_path, "alone")
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_a_worker_killed_mid_step_fails_its_step_only(tmp_path: Path) -> None:
+    # Regression: with a process pool, one killed worker broke the pool, failed the steps
+    # running beside it and ended the study with a traceback.
+    g = Graph([Step("dies", "toy", {"value": 1, "die": True}), Step("slow", "toy", {"value": 2}),
+               Step("after", "toy", {"value": 3}, {"a": "slow"}), Step("more", "toy", {"value": 4})])
+    with pytest.raises(StepFailed) as info:
+        run_local(g, tmp_path, KINDS, workers=2, preload=PRELOAD, progress=False)
+    assert "dies: its worker process died (killed by signal 9)" in str(info.value)
+    assert all(g.record(tmp_path, n) is not None for n in ("slow", "after", "more"))

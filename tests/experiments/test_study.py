@@ -43,6 +43,7 @@ def test_more_seeds_add_policies_and_leave_the_first_seed_untouched() -> None:
     ({"experiments": {"transfer_target": "highway"}}, "not one of the scenarios"),
     ({"scenarios": ["merge", "merge"]}, "repeat a name"),
     ({"scenarios": ["merge", "moon"]}, "unknown scenario 'moon'"),
+    ({"scenarios": ["merge", "latentdrive/scenarios/presets/exit.yaml"]}, "not spec files"),
     ({"evaluate": {"references": ["oracle"]}}, "unknown reference policy 'oracle'"),
     ({"policy": {"train": {"dqn": {"gamma": 0.999}}}}, "reward.mission"),
 ])

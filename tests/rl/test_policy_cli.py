@@ -202,3 +202,9 @@ def test_latent_init_from_checks_the_bnn_by_its_weights_not_its_path(tmp_path, c
     capsys.readouterr()
     _fails(capsys, ["train-policy", str(tmp_path / "ft2"), "--bnn", str(other), "--init-from", str(tmp_path / "src"),
                     *args], "trained on another BNN", tmp_path)
+    # Resuming in a moved study: the same weights at another path continue; others do not.
+    longer = ["--mode", "latent", "--steps", "90", *TINY_SETS, "-q"]
+    assert main(["train-policy", str(tmp_path / "src"), "--bnn", str(moved), "--resume", *longer]) == 0
+    capsys.readouterr()
+    _fails(capsys, ["train-policy", str(tmp_path / "src"), "--bnn", str(other), "--resume",
+                    "--mode", "latent", "--steps", "120", *TINY_SETS, "-q"], "another BNN", tmp_path)
