@@ -124,9 +124,10 @@ def rebuild_report(out: str | Path, say: Callable[[str], None] = print) -> dict[
     previous: dict[str, Any] = {}
     try:
         old = read_json(out / "results.json", limit=MAX_JSON_BYTES, what="results", error=ConfigError)
-        previous = old.get("meta", {}).get("last_run", {}) if isinstance(old, dict) else {}
-    except FileNotFoundError:
-        pass
+        meta = old.get("meta") if isinstance(old, dict) else None
+        previous = meta.get("last_run", {}) if isinstance(meta, dict) else {}
+    except (FileNotFoundError, ConfigError):
+        pass  # rebuilding is what a missing or damaged results.json needs
     return _report(cfg, build_graph(cfg), out, preset, previous, say)
 
 

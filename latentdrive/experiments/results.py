@@ -124,7 +124,10 @@ def _curve(run: Path, test: str) -> list[list[float]]:
     if not path.is_file():
         return []
     rows = csv.DictReader(read_text(path, limit=MAX_JSON_BYTES, what="evaluation log", error=ConfigError).splitlines())
-    return [[float(r["transitions"]), float(r["failure_rate"])] for r in rows if r.get("scenario") == test]
+    try:
+        return [[float(r["transitions"]), float(r["failure_rate"])] for r in rows if r.get("scenario") == test]
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ConfigError(f"{path}: not an evaluation log ({type(exc).__name__}: {exc})") from None
 
 
 def _distance_to_rest(names: Sequence[str], m: Sequence[Sequence[float]], left_out: str) -> float:

@@ -38,7 +38,7 @@ from latentdrive.fileio import atomic_write_text
 from latentdrive.outcome import outcomes_to_json
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import CHECKPOINT
-from latentdrive.rl.train import train_policy
+from latentdrive.rl.train import REPLAY_PATTERN, train_policy
 
 __all__ = ["OUTCOMES", "PROBES", "RUN", "STEP_KINDS"]
 
@@ -88,6 +88,11 @@ def run_policy(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Pa
     cfg = validate(PolicyTrainConfig, train)
     run = folder / RUN
     result = train_policy(cfg, run, resume=(run / CHECKPOINT).exists(), progress=False, say=_quiet)
+    # The replay exists to resume an interrupted run; a finished study step is never resumed
+    # (a larger budget is another step), and a raw policy's replay holds gigabytes.
+    for f in run.iterdir():
+        if REPLAY_PATTERN.fullmatch(f.name):
+            f.unlink()
     return {"transitions": int(result.get("transitions", 0))}
 
 

@@ -56,7 +56,7 @@ from latentdrive.runtime import resolve_device, torch_settings
 from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed
 from latentdrive.vec import make_vec
 
-__all__ = ["Learner", "TrainResult", "learner_steps", "make_store", "train_policy"]
+__all__ = ["REPLAY_PATTERN", "Learner", "TrainResult", "learner_steps", "make_store", "train_policy"]
 
 #: Replay of segment k: ``replay-<k>.safetensors``. A new name per segment, so that a kill
 #: while saving never leaves a checkpoint beside a replay it does not belong to.

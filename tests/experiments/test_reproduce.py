@@ -28,6 +28,9 @@ def test_the_tiny_study_reports_every_experiment(tiny_study: Path) -> None:
             assert 0 <= row[rep]["failure"]["mean"] <= 1 and row[rep]["failure"]["seeds"] == 1
         assert row["paired"]["failure"]["n"] == 2 * (len(scen) if row["test"] == "mixed" else 1)
     assert all(s["peak_rss_mb"] > 0 for s in res["steps"].values())
+    # Finished policies keep their checkpoint, not the replay that only resuming needs.
+    assert list(tiny_study.glob("steps/policy-*/run/checkpoint.safetensors"))
+    assert not list(tiny_study.glob("steps/policy-*/run/replay-*"))
     report = (tiny_study / "report.md").read_text()
     for section in ("Bottleneck vs baseline", "Train × test", "Domain adaptation", "Transfer learning",
                     "Leave one scenario out", "Ablations", "Bottleneck network", "linear probes", "What this run can and cannot show"):
@@ -47,6 +50,7 @@ def test_rerunning_skips_finished_steps_and_rebuilding_the_report_changes_no_num
     assert main(["reproduce", str(tiny_study), "--preset", "tiny", "-q"]) == 0
     assert stamps == {n: (graph.folder(tiny_study, n) / "done.json").stat().st_mtime_ns for n in graph.order}
     (tiny_study / "report.md").unlink()
+    (tiny_study / "results.json").write_text("{ damaged")  # what `report` exists to rebuild
     assert main(["report", str(tiny_study)]) == 0
     assert (tiny_study / "report.md").is_file() and _numbers(tiny_study) == before
 
