@@ -37,9 +37,11 @@ __all__ = [
     "confined",
     "is_temp_file",
     "output_problem",
+    "peak_rss_mb",
     "read_bytes",
     "read_json",
     "read_text",
+    "reset_peak_rss",
 ]
 
 #: Largest YAML config, preset or scenario spec read (1 MiB): real ones are a few KiB.
@@ -216,3 +218,28 @@ def confined(root: str | Path, name: object, *, source: str | Path,
     if len(shown) > 80:
         shown = shown[:77] + "..."
     raise error(f"{source}: names {shown}, which is not a path inside its folder {base}")
+
+
+def reset_peak_rss() -> None:
+    """Reset this process's peak resident memory (Linux: ``/proc/self/clear_refs`` 5), so
+    that a process reused for several jobs reports each job's own peak. Elsewhere a no-op."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def peak_rss_mb() -> float:
+    """Peak resident memory since :func:`reset_peak_rss`, in MB (``VmHWM``); where /proc is
+    missing, the process's lifetime peak."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return int(line.split()[1]) / 1024
+    except OSError:
+        pass
+    import resource
+    import sys
+
+    scale = 1024 if sys.platform != "darwin" else 1024 * 1024  # ru_maxrss: KB on Linux, bytes on macOS
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / scale

@@ -220,13 +220,6 @@ def test_nothing_is_unpickled() -> None:
     assert not found
 
 
-def _proc_control(call: ast.Call) -> bool:
-    """``Path("/proc/...").write_text(...)``: a literal path under /proc."""
-    f = call.func
-    return (isinstance(f, ast.Attribute) and isinstance(f.value, ast.Call) and bool(f.value.args)
-            and isinstance(f.value.args[0], ast.Constant) and str(f.value.args[0].value).startswith("/proc/"))
-
-
 def test_every_file_is_written_through_the_one_atomic_write() -> None:
     """Renames, temporary files and direct writes live in latentdrive.fileio only."""
     found = []
@@ -240,8 +233,17 @@ def test_every_file_is_written_through_the_one_atomic_write() -> None:
                 # savefig to an in-memory buffer is fine; to a path it is not.
                 if last == "savefig" and call.args and isinstance(call.args[0], ast.Name) and call.args[0].id == "buf":
                     continue
-                # A write to a kernel control under /proc (resetting the peak-memory mark) stores nothing.
-                if _proc_control(call):
-                    continue
                 found.append(f"{path.relative_to(PACKAGE)}:{call.lineno}: {name}")
     assert not found
+
+
+def test_the_peak_memory_mark_resets_between_jobs() -> None:
+    from latentdrive.fileio import peak_rss_mb, reset_peak_rss
+
+    reset_peak_rss()
+    block = bytearray(200 << 20)  # 200 MB, touched so it is resident
+    block[:: 4096] = b"x" * len(block[:: 4096])
+    high = peak_rss_mb()
+    del block
+    reset_peak_rss()
+    assert high - peak_rss_mb() > 150

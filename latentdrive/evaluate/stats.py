@@ -16,18 +16,27 @@ from scipy import stats as sps
 from statsmodels.stats.contingency_tables import mcnemar
 from statsmodels.stats.proportion import proportion_confint
 
-__all__ = ["MeanCI", "PairedTest", "RateCI", "json_safe", "mean_ci", "paired_test", "rate_ci"]
+__all__ = [
+    "MeanCI", "PairedTest", "RateCI", "json_safe", "json_values", "mean_ci", "paired_test", "rate_ci"]
+
+
+def json_values(value: Any) -> Any:
+    """``value`` as plain JSON values, recursively: NaN and infinities become ``None`` (JSON
+    has neither), numpy scalars Python ones, tuples lists, keys strings."""
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_values(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_values(v) for v in value]
+    return value
 
 
 def json_safe(d: dict[str, Any]) -> dict[str, Any]:
-    """``d`` with every NaN float replaced by ``None`` and numpy scalars made Python ones."""
-    out: dict[str, Any] = {}
-    for key, value in d.items():
-        if isinstance(value, np.generic):
-            value = value.item()
-        if isinstance(value, float) and math.isnan(value):
-            value = None
-        out[key] = value
+    """:func:`json_values` of a dict."""
+    out: dict[str, Any] = json_values(d)
     return out
 
 

@@ -47,6 +47,7 @@ from latentdrive.data.collect import (
 )
 from latentdrive.data.dataset import ShardDataset
 from latentdrive.data.shards import DatasetError
+from latentdrive.evaluate.stats import json_values
 from latentdrive.experiments.bnn_report import epoch_rows, read_report
 from latentdrive.experiments.heldout import HeldOut, held_out
 from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
@@ -205,17 +206,6 @@ def _finite_or_none(v: float) -> float | None:
     return v if math.isfinite(v) else None
 
 
-def _json_safe(value: Any) -> Any:
-    """``value`` with every non-finite float replaced by None (JSON has no NaN)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
-
-
 def _fmt(v: float | None, spec: str) -> str:
     return "–" if v is None or not math.isfinite(v) else format(v, spec)
 
@@ -299,7 +289,7 @@ def report_bnn_runs(cfg: BNNStudyConfig, dataset: Path, runs: Mapping[str, tuple
     for name, (run, d, lam) in runs.items():
         report["runs"][name] = {"latent_dim": d, "lambda": lam,
                                 **evaluate_run(run, data, ds, val_ids, cfg.train.batch_size)}
-    report = _json_safe(report)
+    report = json_values(report)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "report.json", json.dumps(report, indent=1, allow_nan=False) + "\n")
     atomic_write_text(out / "report.md", format_report(report))

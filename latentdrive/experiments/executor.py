@@ -13,11 +13,8 @@ can) next time.
 
 from __future__ import annotations
 
-import math
 import multiprocessing as mp
-import resource
 import shutil
-import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -28,7 +25,9 @@ from typing import Any, Protocol
 from tqdm.auto import tqdm
 
 from latentdrive.errors import LatentDriveError, first_line
+from latentdrive.evaluate.stats import json_values
 from latentdrive.experiments.graph import Graph, Step, StepRecord
+from latentdrive.fileio import peak_rss_mb, reset_peak_rss
 
 __all__ = ["Runner", "StepFailed", "StepKind", "check_kinds", "execute_step", "run_graph", "run_local"]
 
@@ -63,52 +62,19 @@ def execute_step(kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path
                  write_record: Callable[[StepRecord], None]) -> StepRecord:
     """Run one step into ``folder`` and record it; this is what a worker process does."""
     t0 = time.perf_counter()
-    _reset_peak_rss()
+    reset_peak_rss()
     if folder.exists() and not kind.resumable:
         shutil.rmtree(folder)
     folder.mkdir(parents=True, exist_ok=True)
     for role, path in inputs.items():
         if not path.is_dir():
             raise LatentDriveError(f"step {step.name}: its input {role} is missing ({path})")
-    summary = _json_safe(kind.run(step.config, inputs, folder))
-    peak_mb = _peak_rss_mb()
+    summary = json_values(kind.run(step.config, inputs, folder))
+    peak_mb = peak_rss_mb()
     rec = StepRecord(name=step.name, kind=step.kind, key=key, summary=summary,
                      wall_s=round(time.perf_counter() - t0, 2), peak_rss_mb=round(peak_mb, 1))
     write_record(rec)
     return rec
-
-
-def _reset_peak_rss() -> None:
-    """Reset this process's peak resident memory (Linux: ``clear_refs`` 5), so that a worker
-    reused for several steps reports each step's own peak."""
-    try:
-        Path("/proc/self/clear_refs").write_text("5")
-    except OSError:
-        pass
-
-
-def _peak_rss_mb() -> float:
-    """Peak resident memory since :func:`_reset_peak_rss`, in MB (``VmHWM``; elsewhere the
-    process's lifetime peak, which a fresh process per step makes the step's)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmHWM:"):
-                return int(line.split()[1]) / 1024
-    except OSError:
-        pass
-    scale = 1024 if sys.platform != "darwin" else 1024 * 1024  # ru_maxrss: KB on Linux, bytes on macOS
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / scale
-
-
-def _json_safe(value: Any) -> Any:
-    """``value`` with NaN and infinities as None, so a summary always has a JSON record."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def _ranks(graph: Graph, names: Sequence[str]) -> dict[str, float]:

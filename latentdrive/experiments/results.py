@@ -10,7 +10,6 @@ over seeds: seed ``k`` of one against seed ``k`` of the other).
 from __future__ import annotations
 
 import csv
-import json
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -20,7 +19,7 @@ from scipy.stats import spearmanr
 
 from latentdrive.config import ConfigError
 from latentdrive.evaluate.aggregate import seed_interval
-from latentdrive.evaluate.stats import paired_test, rate_ci
+from latentdrive.evaluate.stats import json_values, paired_test, rate_ci
 from latentdrive.experiments.graph import Graph, StepRecord
 from latentdrive.experiments.steps import OUTCOMES, PROBES, RUN
 from latentdrive.experiments.study import ABLATIONS, REPS, ReproduceConfig
@@ -160,10 +159,10 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
 
     # Train × test matrices.
     trains = [*scen, MIXED]
-    res["matrix"] = {rep: {train: {t: v["failure"]["mean"] for t, v in st.kind(rep, train).items()} for train in trains}
-                     for rep in REPS}
-    res["matrix_crash"] = {rep: {train: {t: v["crash"]["mean"] for t, v in st.kind(rep, train).items()} for train in trains}
-                           for rep in REPS}
+    by_train = {(rep, train): st.kind(rep, train) for rep in REPS for train in trains}
+    for key, what in (("matrix", "failure"), ("matrix_crash", "crash")):
+        res[key] = {rep: {train: {t: v[what]["mean"] for t, v in by_train[rep, train].items()} for train in trains}
+                    for rep in REPS}
 
     # Domain adaptation: the mix policy against each scenario's oracle.
     res["domain_adaptation"] = {rep: {s: {"mixed": st.kind(rep, MIXED, [s])[s]["failure"],
@@ -234,10 +233,5 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
         res["cross_backend"] = cross
 
     res["steps"] = {n: {"kind": r.kind, "wall_s": r.wall_s, "peak_rss_mb": r.peak_rss_mb} for n, r in records.items()}
-    return json.loads(json.dumps(res, allow_nan=False, default=_nan_safe))
-
-
-def _nan_safe(v: Any) -> Any:
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    raise TypeError(f"not JSON: {type(v).__name__}")
+    clean: dict[str, Any] = json_values(res)
+    return clean
