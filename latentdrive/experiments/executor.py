@@ -214,7 +214,8 @@ def run_graph(graph: Graph, out: Path, kinds: Mapping[str, StepKind], runner: Ru
     failed: dict[str, str] = {}
     blocked: set[str] = set()
     running: dict[Any, str] = {}
-    bar = tqdm(total=round(sum(graph.steps[n].cost for n in todo)), disable=not progress or not todo,
+    # Float totals: rounding each step's cost would let the bar end short of (or past) 100%.
+    bar = tqdm(total=sum(graph.steps[n].cost for n in todo), disable=not progress or not todo,
                unit="s", bar_format="{desc} {percentage:3.0f}%|{bar}| {elapsed}<{remaining} {postfix}",
                dynamic_ncols=True)
     done_count = len(records)
@@ -238,7 +239,7 @@ def run_graph(graph: Graph, out: Path, kinds: Mapping[str, StepKind], runner: Ru
                 break  # what is left waits on failed steps
             for handle in runner.wait(list(running)):
                 n = running.pop(handle)
-                bar.update(round(graph.steps[n].cost))
+                bar.update(graph.steps[n].cost)
                 try:
                     records[n] = runner.result(handle)
                     done_count += 1
@@ -248,6 +249,8 @@ def run_graph(graph: Graph, out: Path, kinds: Mapping[str, StepKind], runner: Ru
                     failed[n] = first_line(exc)
                     bar.write(f"step {n} failed: {failed[n]}")
                     blocked.update(_descendants(graph, n))
+                    # What can no longer run leaves the total, so the bar still ends full.
+                    bar.total -= sum(graph.steps[m].cost for m in todo if m in blocked)
                     todo = [m for m in todo if m not in blocked]
     finally:
         bar.close()

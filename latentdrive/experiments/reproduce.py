@@ -70,6 +70,17 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
         where = (f"a local Ray instance of {workers} CPU(s)" if ray == "local" else f"Ray cluster {ray}") if ray \
             else f"{workers} worker(s)"
         say(f"study: {len(graph.order)} steps, {len(graph.order) - len(pending)} already finished; {where} -> {out}")
+        if (out / STUDY).exists():
+            try:
+                before, before_preset = read_study(out)
+            except ConfigError:
+                before, before_preset = None, ""
+            if before != cfg:
+                # Allowed (more seeds reuse the finished steps), but the report will
+                # describe only the new config: say so before it is replaced.
+                was = f"preset {before_preset}" if before is not None and before_preset else "another config"
+                say(f"note: {out} held a study of {was}; its finished steps are kept and reused where "
+                    f"their keys match, and the report will describe the new config")
         atomic_write_text(out / STUDY, json.dumps({"preset": preset, "config": cfg.model_dump(mode="json")},
                                                   indent=1) + "\n")
         t0 = time.perf_counter()

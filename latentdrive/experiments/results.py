@@ -112,11 +112,6 @@ class _Study:
                 for e in self.seeds(rep, train)]
 
 
-def _reduction(raw: float, latent: float) -> float | None:
-    """Relative reduction of a rate by the bottleneck: the paper's "47% fewer"."""
-    return None if raw == 0 else (raw - latent) / raw
-
-
 def _curve(run: Path, test: str) -> list[list[float]]:
     """``[[transitions, failure_rate], ...]`` of a policy run's periodic evaluations."""
     path = run / "eval.csv"
@@ -152,7 +147,6 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
         row: dict[str, Any] = {"train": train, "test": test}
         for rep in REPS:
             row[rep] = st.kind(rep, train, [test])[test]
-        row["reduction"] = {w: _reduction(row["raw"][w]["mean"], row["latent"][w]["mean"]) for w in ("failure", "crash")}
         row["paired"] = st.paired("latent", "raw", train, test)
         head.append(row)
     res["headline"] = head

@@ -177,7 +177,11 @@ def build_graph(cfg: ReproduceConfig) -> Graph:
     steps.append(Step("bnn/report", "bnn-report",
                       {"study": bnn_study.model_dump(mode="json"), "runs": {n: [d, lam] for n, d, lam in runs}},
                       {"dataset": "dataset", **{f"run:{n}": f"bnn/{n}" for n, _, _ in runs}}, cost=30))
-    bnn_for = {"latent": f"bnn/{run_name(cfg.policy_bnn)}", "latent-lam": f"bnn/{runs[-1][0]}"}
+    policy_bnn = f"bnn/{run_name(cfg.policy_bnn)}"
+    # latent-random and end-to-end take only the architecture of the policy BNN (not its
+    # weights), so the ablations differ from latent in the weights alone.
+    bnn_for = {"latent": policy_bnn, "latent-random": policy_bnn, "end-to-end": policy_bnn,
+               "latent-lam": f"bnn/{runs[-1][0]}"}
 
     ev = cfg.evaluate
     eval_cfg = {"scenarios": list(cfg.scenarios), "episodes": ev.episodes, "envs": ev.envs, "backend": "fast",

@@ -102,3 +102,19 @@ def test_paired_empty_is_nan_and_json_safe() -> None:
     t = paired_test([], [])
     assert t.n == 0 and math.isnan(t.p_value)
     json.dumps(t.as_dict(), allow_nan=False)
+
+
+def test_relative_reduction_and_its_interval() -> None:
+    # B fails 9 of 14, A 3 of the same 14 (A fails only where B does): 1 - 3/9 = 2/3 fewer.
+    a = np.array([False] * 6 + [True] * 3 + [False] * 5)
+    b = np.array([True] * 6 + [True] * 3 + [False] * 5)
+    t = paired_test(a, b)
+    assert t.relative == pytest.approx(2 / 3)
+    assert 0 < t.relative_lo <= t.relative <= t.relative_hi <= 1
+    # The reverse is an increase: negative.
+    assert paired_test(b, a).relative == pytest.approx(1 - 9 / 3)
+
+
+def test_relative_reduction_of_a_rate_that_is_zero_is_undefined() -> None:
+    t = paired_test([True, False, False], [False, False, False])
+    assert math.isnan(t.relative) and t.as_dict()["relative"] is None

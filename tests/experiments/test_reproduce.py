@@ -113,3 +113,18 @@ def test_a_killed_study_loses_only_the_steps_in_progress(tiny_study: Path, tmp_p
     assert main(["reproduce", str(out), "--preset", "tiny", "--workers", "2", "-q"]) == 0
     assert all((graph.folder(out, n) / "done.json").stat().st_mtime_ns == t for n, t in finished.items())
     assert _numbers(out) == before
+
+
+def test_running_another_config_into_a_study_folder_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import latentdrive.experiments.reproduce as rep
+
+    # Only the bookkeeping around the steps is under test here: no step runs.
+    monkeypatch.setattr(rep, "run_local", lambda *a, **k: {})
+    monkeypatch.setattr(rep, "_report", lambda *a, **k: {})
+    said: list[str] = []
+    rep.run_study(load_reproduce_config("tiny"), tmp_path, preset="tiny", say=said.append)
+    rep.run_study(load_reproduce_config("tiny"), tmp_path, preset="tiny", say=said.append)
+    assert not any(s.startswith("note:") for s in said)  # the same study again: nothing to say
+    rep.run_study(load_reproduce_config("tiny", {"seeds": 2}), tmp_path, preset="tiny", say=said.append)
+    assert said[-1].startswith(f"note: {tmp_path} held a study of preset tiny")
+    assert rep.read_study(tmp_path)[0].seeds == 2

@@ -25,6 +25,11 @@ def test_the_tiny_graph_holds_every_experiment_with_the_right_inputs() -> None:
     assert g.steps["policy/latent-lam/mixed/s0"].inputs == {"bnn": "bnn/d8-lam0.01"}
     assert g.steps["policy/latent-lam/mixed/s0"].config["train"]["mode"] == "latent"
     assert "bnn" not in g.steps["policy/raw/mixed/s0"].inputs
+    # The ablations take the policy BNN's architecture, whatever the study's channels.
+    wide = build_graph(load_reproduce_config("tiny", {"bnn": {"channels": [8, 16]}}))
+    for rep in ("latent-random", "end-to-end"):
+        assert g.steps[f"policy/{rep}/mixed/s0"].inputs == {"bnn": "bnn/d8"}
+        assert wide.keys[f"policy/{rep}/mixed/s0"] != g.keys[f"policy/{rep}/mixed/s0"]
     # Every policy and reference meets the same evaluation episodes.
     evals = [s.config["eval"] for s in g.steps.values() if s.kind == "evaluate"]
     assert len({(e["episodes"], e["envs"], e["seed_offset"], tuple(e["scenarios"])) for e in evals}) == 1
