@@ -29,7 +29,7 @@ from latentdrive.evaluate.stats import json_values
 from latentdrive.experiments.graph import Graph, Step, StepRecord
 from latentdrive.fileio import peak_rss_mb, reset_peak_rss
 
-__all__ = ["Runner", "StepFailed", "StepKind", "check_kinds", "execute_step", "run_graph", "run_local"]
+__all__ = ["Runner", "StepFailed", "StepKind", "StepRecords", "check_kinds", "execute_step", "run_graph", "run_local"]
 
 StepFn = Callable[[Mapping[str, Any], Mapping[str, Path], Path], dict[str, Any]]
 
@@ -59,8 +59,14 @@ class StepFailed(LatentDriveError):
 
 
 def execute_step(kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
-                 write_record: Callable[[StepRecord], None]) -> StepRecord:
-    """Run one step into ``folder`` and record it; this is what a worker process does."""
+                 records: StepRecords) -> StepRecord:
+    """Run one step into ``folder`` and record it; this is what a worker process does.
+
+    A step already recorded with this key is not run again: a task retried after its
+    worker died between writing ``done.json`` and reporting back keeps its results.
+    """
+    if (done := records.finished(step.name)) is not None:
+        return done
     t0 = time.perf_counter()
     reset_peak_rss()
     if folder.exists() and not kind.resumable:
@@ -73,7 +79,7 @@ def execute_step(kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path
     peak_mb = peak_rss_mb()
     rec = StepRecord(name=step.name, kind=step.kind, key=key, summary=summary,
                      wall_s=round(time.perf_counter() - t0, 2), peak_rss_mb=round(peak_mb, 1))
-    write_record(rec)
+    records.write(rec)
     return rec
 
 
@@ -98,7 +104,7 @@ class Runner(Protocol):
     slots: int
 
     def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
-               write_record: Callable[[StepRecord], None]) -> Any:
+               records: StepRecords) -> Any:
         """Start ``execute_step`` with these arguments; returns a handle."""
 
     def wait(self, handles: Sequence[Any]) -> list[Any]:
@@ -116,10 +122,10 @@ class _Handle:
 
 
 def _child(conn: Any, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
-           write_record: Callable[[StepRecord], None]) -> None:
+           records: StepRecords) -> None:
     """A worker process: run one step, send back its record or its error's first line."""
     try:
-        conn.send((True, execute_step(kind, step, key, inputs, folder, write_record)))
+        conn.send((True, execute_step(kind, step, key, inputs, folder, records)))
     except BaseException as exc:  # reported by the driver with the step's name
         conn.send((False, f"{first_line(exc)}" if isinstance(exc, LatentDriveError) else
                    f"{type(exc).__name__}: {first_line(exc)}"))
@@ -136,9 +142,9 @@ class _Processes:
         self.live: set[_Handle] = set()
 
     def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
-               write_record: Callable[[StepRecord], None]) -> Any:
+               records: StepRecords) -> Any:
         recv, send = self.ctx.Pipe(duplex=False)
-        p = self.ctx.Process(target=_child, args=(send, kind, step, key, inputs, folder, write_record),
+        p = self.ctx.Process(target=_child, args=(send, kind, step, key, inputs, folder, records),
                              name=f"latentdrive step {step.name}")
         p.start()
         send.close()
@@ -232,7 +238,7 @@ def run_graph(graph: Graph, out: Path, kinds: Mapping[str, StepKind], runner: Ru
                 todo.remove(n)
                 step = graph.steps[n]
                 handle = runner.submit(kinds[step.kind], step, graph.keys[n], graph.inputs(out, n),
-                                       graph.folder(out, n), _RecordWriter(graph, out))
+                                       graph.folder(out, n), StepRecords(graph, out))
                 running[handle] = n
             describe()
             if not running:
@@ -260,14 +266,17 @@ def run_graph(graph: Graph, out: Path, kinds: Mapping[str, StepKind], runner: Ru
     return records
 
 
-class _RecordWriter:
-    """Writes a finished step's ``done.json`` from the worker (picklable, unlike a closure)."""
+class StepRecords:
+    """The steps' ``done.json`` files, read and written from a worker (picklable, unlike a closure)."""
 
     def __init__(self, graph: Graph, out: Path) -> None:
         self.graph, self.out = graph, out
 
-    def __call__(self, rec: StepRecord) -> None:
+    def write(self, rec: StepRecord) -> None:
         self.graph.write_record(self.out, rec)
+
+    def finished(self, name: str) -> StepRecord | None:
+        return self.graph.record(self.out, name)
 
 
 def _descendants(graph: Graph, name: str) -> set[str]:

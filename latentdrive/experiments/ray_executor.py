@@ -18,12 +18,18 @@ Ray is an optional dependency (``pip install latentdrive[ray]``); only this modu
 
 from __future__ import annotations
 
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from latentdrive.errors import LatentDriveError
-from latentdrive.experiments.executor import StepKind, check_kinds, execute_step, run_graph
+from latentdrive.experiments.executor import (
+    StepKind,
+    StepRecords,
+    check_kinds,
+    execute_step,
+    run_graph,
+)
 from latentdrive.experiments.graph import Graph, Step, StepRecord
 
 __all__ = ["run_ray"]
@@ -39,11 +45,11 @@ class _RayRunner:
         self.remote = ray.remote(execute_step)
 
     def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
-               write_record: Callable[[StepRecord], None]) -> Any:
+               records: StepRecords) -> Any:
         gpus = self.gpu_fraction if kind.gpu and self.has_gpu else 0
         return self.remote.options(num_cpus=kind.cpus, num_gpus=gpus, max_retries=self.retries,
                                    retry_exceptions=False, name=step.name).remote(
-            kind, step, key, inputs, folder, write_record)
+            kind, step, key, inputs, folder, records)
 
     def wait(self, handles: Sequence[Any]) -> list[Any]:
         done, _ = self.ray.wait(list(handles), num_returns=1)

@@ -133,3 +133,15 @@ def test_a_worker_killed_mid_step_fails_its_step_only(tmp_path: Path) -> None:
         run_local(g, tmp_path, KINDS, workers=2, preload=PRELOAD, progress=False)
     assert "dies: its worker process died (killed by signal 9)" in str(info.value)
     assert all(g.record(tmp_path, n) is not None for n in ("slow", "after", "more"))
+
+
+def test_a_retried_task_whose_step_had_finished_keeps_its_results(tmp_path: Path) -> None:
+    # A Ray worker can die after writing done.json and before reporting back; Ray then
+    # runs the task again, which must not clear the finished folder and redo the work.
+    from latentdrive.experiments.executor import StepRecords, execute_step
+
+    g = _diamond()
+    records = StepRecords(g, tmp_path)
+    first = execute_step(KINDS["toy"], g.steps["top"], g.keys["top"], {}, g.folder(tmp_path, "top"), records)
+    again = execute_step(KINDS["toy"], g.steps["top"], g.keys["top"], {}, g.folder(tmp_path, "top"), records)
+    assert again == first and _runs(tmp_path) == [g.folder(tmp_path, "top").name]
