@@ -15,9 +15,10 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 from scipy.stats import spearmanr
 
-from latentdrive.config import ConfigError
+from latentdrive.config import ConfigError, describe_validation_error
 from latentdrive.evaluate.aggregate import seed_interval
 from latentdrive.evaluate.stats import json_values, paired_test, rate_ci
 from latentdrive.experiments.graph import Graph, StepRecord
@@ -38,6 +39,60 @@ def _load(path: Path) -> Episodes:
         return outcomes_from_json(data)
     except ValueError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+
+
+class _Loose(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+
+
+class _BNNRun(_Loose):
+    latent_dim: int
+    lambda_: float = Field(alias="lambda")
+    val_recon: float | None = None
+    vehicle_recall: float | None = None
+    mean_between_scenario_distance: float | None = None
+    latent_scenarios: list[str] | None = None
+    latent_distance: list[list[float]] | None = None
+
+
+class _BNNReport(_Loose):
+    """What the study reads of the BNN study's ``report.json`` (other keys pass through)."""
+
+    runs: dict[str, _BNNRun]
+    raw_scenarios: list[str] | None = None
+    raw_distance: list[list[float]] | None = None
+    raw_mean_between_scenario_distance: float | None = None
+    noisy_input_vehicles: dict[str, Any] | None = None
+
+
+class _ProbeScore(_Loose):
+    metric: str
+    value: float | None
+    baseline: float | None
+
+
+class _ProbeSamples(_Loose):
+    train: int
+    test: int
+
+
+def _checked(path: Path, data: Any, shape: Any, what: str) -> Any:
+    """``data`` (read from ``path``) if it has ``shape``, else a one-line error naming the file."""
+    try:
+        TypeAdapter(shape).validate_python(data)
+    except ValidationError as exc:
+        raise ConfigError(f"{path}: not a {what} ({describe_validation_error(exc, first=True)})") from None
+    return data
+
+
+def _read_probes(path: Path) -> dict[str, Any]:
+    data = read_json(path, limit=MAX_JSON_BYTES, what="probe results", error=ConfigError)
+    _checked(path, data, dict[str, Any], "probe result")
+    _checked(path, data.get("samples"), _ProbeSamples, "probe result (samples)")
+    _checked(path, {k: v for k, v in data.items() if k != "samples"}, dict[str, dict[str, _ProbeScore]],
+             "probe result")
+    out: dict[str, Any] = data
+    return out
 
 
 def _subset(eps: Episodes, test: str) -> Episodes:
@@ -178,15 +233,16 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
                                    for k in range(cfg.seeds)]},
         } for rep in REPS}}
 
-    bnn = read_json(graph.folder(out, "bnn/report") / "report.json", limit=MAX_JSON_BYTES, what="BNN report",
-                    error=ConfigError)
+    bnn_path = graph.folder(out, "bnn/report") / "report.json"
+    bnn = _checked(bnn_path, read_json(bnn_path, limit=MAX_JSON_BYTES, what="BNN report", error=ConfigError),
+                   _BNNReport, "BNN study report")
     res["bnn"] = {"report": bnn, "policy_run": f"d{cfg.policy_bnn}",
                   "figures": str((graph.folder(out, "bnn/report") / "figures").relative_to(out))}
 
     if exp.leave_one_out:
         loo: dict[str, Any] = {}
         latent = bnn["runs"].get(f"d{cfg.policy_bnn}", {})
-        spaces = {"raw": (bnn["raw_scenarios"], bnn["raw_distance"]),
+        spaces = {"raw": (bnn.get("raw_scenarios"), bnn.get("raw_distance")),
                   "latent": (latent.get("latent_scenarios"), latent.get("latent_distance"))}
         for rep in REPS:
             rows = {s: {"zero_shot": st.kind(rep, f"without-{s}", [s])[s]["failure"],
@@ -210,8 +266,7 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
         res["ablations"] = {v: st.kind(v, MIXED, [MIXED])[MIXED] for v in variants}
 
     if exp.probe_episodes:
-        res["probes"] = read_json(graph.folder(out, "probes") / PROBES, limit=MAX_JSON_BYTES, what="probe results",
-                                  error=ConfigError)
+        res["probes"] = _read_probes(graph.folder(out, "probes") / PROBES)
 
     if cfg.evaluate.cross_backend_episodes:
         cross: dict[str, Any] = {}

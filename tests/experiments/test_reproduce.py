@@ -128,3 +128,24 @@ def test_running_another_config_into_a_study_folder_says_so(tmp_path: Path, monk
     rep.run_study(load_reproduce_config("tiny", {"seeds": 2}), tmp_path, preset="tiny", say=said.append)
     assert said[-1].startswith(f"note: {tmp_path} held a study of preset tiny")
     assert rep.read_study(tmp_path)[0].seeds == 2
+
+
+@pytest.mark.parametrize(("step", "file", "content", "needle"), [
+    ("bnn/report", "report.json", "{}", "runs"),
+    ("bnn/report", "report.json", '{"runs": {"d8": {"latent_dim": "eight", "lambda": 0}}}', "latent_dim"),
+    ("probes", "probes.json", '{"raw": 1, "samples": {"train": 1, "test": 1}}', "raw"),
+    ("probes", "probes.json", '{"raw": {}}', "samples"),
+])
+def test_a_damaged_step_result_is_a_one_line_error_and_the_report_is_kept(
+        tiny_study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
+        step: str, file: str, content: str, needle: str) -> None:
+    out = tmp_path / "copy"
+    shutil.copytree(tiny_study, out)
+    graph = build_graph(load_reproduce_config("tiny"))
+    (graph.folder(out, step) / file).write_text(content)
+    report = (out / "report.md").read_bytes()
+    capsys.readouterr()
+    assert main(["report", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and file in err[0] and needle in err[0], err
+    assert (out / "report.md").read_bytes() == report
