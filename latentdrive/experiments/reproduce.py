@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import platform
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -142,16 +142,34 @@ def rebuild_report(out: str | Path, say: Callable[[str], None] = print) -> dict[
     return _report(cfg, build_graph(cfg), out, preset, previous, say)
 
 
-def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]) -> list[Estimate]:
+def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int],
+                  speedup: Mapping[str, float] | None = None) -> list[Estimate]:
     """Estimates of the study ``cfg`` on each number of ``workers``, at the step times the
-    study in ``measured`` recorded (its finished steps; at least one of each class)."""
+    study in ``measured`` recorded (its finished steps; at least one of each class).
+
+    ``speedup`` maps a step class (``bnn``, ``policy:raw``, ...), or a kind standing for all
+    its classes (``policy``), to how many times faster the target machine runs it than the
+    measuring one did (e.g. the ratio of two ``latentdrive bench --train`` runs).
+    """
     measured = Path(measured)
     m_cfg, _ = read_study(measured)
+    if m_cfg.observation != cfg.observation:
+        a, b = m_cfg.observation.model_dump(), cfg.observation.model_dump()
+        diff = ", ".join(f"{k} {a[k]} there, {b[k]} here" for k in a if a[k] != b[k])
+        raise ConfigError(f"{measured} measured other observations ({diff}): its step times do not carry over")
     m_graph = build_graph(m_cfg)
     records = {n: r for n in m_graph.order if (r := m_graph.record(measured, n)) is not None}
     if not records:
         raise ConfigError(f"{measured}: no finished step to measure")
     rates = measured_rates(m_graph, records)
+    for name, factor in (speedup or {}).items():
+        hit = [c for c in rates if c == name or c.split(":")[0] == name]
+        if not hit:
+            raise ConfigError(f"--speedup {name}: no such step class measured (known: {', '.join(sorted(rates))})")
+        if not factor > 0:
+            raise ConfigError(f"--speedup {name}: the factor must be positive, got {factor:g}")
+        for c in hit:
+            rates[c] /= factor
     scale = (cfg.bnn.collect.episodes * len(cfg.scenarios)) / (m_cfg.bnn.collect.episodes * len(m_cfg.scenarios))
     graph = build_graph(cfg)
     return [estimate_study(graph, rates, w, bnn_scale=scale) for w in workers]

@@ -39,9 +39,20 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     if any(w < 1 for w in args.workers):
         raise LatentDriveError("--workers must all be at least 1")
     cfg = load_reproduce_config(args.preset, parse_override_args(args.overrides))
-    estimates = estimate_from(args.measured, cfg, args.workers)
+    speedup = {}
+    for item in args.speedup:
+        name, sep, value = item.partition("=")
+        try:
+            speedup[name.strip()] = float(value)
+        except ValueError:
+            raise LatentDriveError(f"--speedup {item!r}: expected CLASS=FACTOR, e.g. bnn=20") from None
+        if not sep:
+            raise LatentDriveError(f"--speedup {item!r}: expected CLASS=FACTOR, e.g. bnn=20")
+    estimates = estimate_from(args.measured, cfg, args.workers, speedup)
     first = estimates[0]
-    print(f"{args.preset}: {first.steps} steps, {first.step_hours:.1f} step-hours at the step times of {args.measured}")
+    faster = f", {', '.join(f'{k} {v:g}x faster' for k, v in speedup.items())}" if speedup else ""
+    print(f"{args.preset}: {first.steps} steps, {first.step_hours:.1f} step-hours at the step times of "
+          f"{args.measured}{faster}")
     for cls, hours in first.by_class.items():
         print(f"  {cls:<28}{hours:>9.2f} h")
     for e in estimates:
@@ -74,6 +85,10 @@ def add_reproduce_parsers(sub: Any) -> None:
     s.add_argument("--preset", default="paper", help="the study to estimate (default paper), or a .yaml file")
     s.add_argument("--workers", type=int, nargs="+", default=[1, 2, 16], help="worker counts to estimate (default 1 2 16)")
     s.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help="study override")
+    s.add_argument("--speedup", action="append", default=[], metavar="CLASS=FACTOR",
+                   help="the target runs this step class (bnn, policy:raw, ...; or a whole kind: policy) FACTOR times "
+                   "faster than the measuring machine, e.g. the ratio of `bench --train` agent-transitions/s there "
+                   "and here; repeatable")
     s.set_defaults(func=_cmd_estimate)
 
     s = sub.add_parser("report", help="rebuild a study's results.json, report.md and figures from its finished steps")

@@ -1,0 +1,60 @@
+"""`latentdrive estimate`: measured seconds per unit, scaled to another study and list-scheduled."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from latentdrive.cli import main
+from latentdrive.config import ConfigError
+from latentdrive.experiments.estimate import estimate_study, measured_rates
+from latentdrive.experiments.graph import Graph, Step, StepRecord
+from latentdrive.experiments.reproduce import estimate_from
+from latentdrive.experiments.study import load_reproduce_config
+
+
+def _evals(*chain: tuple[str, int, str | None]) -> Graph:
+    """Evaluation steps of ``episodes`` episodes on one scenario, ``name`` after ``needs``."""
+    ev = {"backend": "fast", "scenarios": ["merge"]}
+    return Graph([Step(n, "evaluate", {"eval": {**ev, "episodes": e}}, {"a": d} if d else {}) for n, e, d in chain])
+
+
+def test_a_list_schedule_of_literal_step_times() -> None:
+    # a (10 episodes) then b (20) in one chain; c (30) alone; 1 s per episode.
+    g = _evals(("a", 10, None), ("b", 20, "a"), ("c", 30, None))
+    rates = {"evaluate:fast:policy": 1.0}
+    one, two = estimate_study(g, rates, 1), estimate_study(g, rates, 2)
+    assert one.step_hours * 3600 == pytest.approx(60) and one.wall_hours * 3600 == pytest.approx(60)
+    # Two workers: the chain a→b (30 s) beside c (30 s).
+    assert two.wall_hours * 3600 == pytest.approx(30)
+    # Three workers cannot beat the longest chain.
+    assert estimate_study(g, rates, 3).wall_hours * 3600 == pytest.approx(30)
+
+
+def test_rates_are_seconds_per_unit_of_each_class() -> None:
+    g = _evals(("a", 10, None), ("b", 30, None))
+    recs = {n: StepRecord(name=n, kind="evaluate", key=g.keys[n], summary={}, wall_s=w, peak_rss_mb=1.0)
+            for n, w in (("a", 5.0), ("b", 15.0))}
+    assert measured_rates(g, recs) == {"evaluate:fast:policy": pytest.approx(0.5)}
+
+
+def test_a_speedup_divides_its_classes_time(tiny_study: Path) -> None:
+    cfg = load_reproduce_config("tiny")
+    base = estimate_from(tiny_study, cfg, [1])[0]
+    fast = estimate_from(tiny_study, cfg, [1], {"policy": 4.0})[0]
+    for cls, hours in base.by_class.items():
+        want = hours / 4 if cls.startswith("policy:") else hours
+        assert fast.by_class[cls] == pytest.approx(want, abs=0.01)
+    assert fast.step_hours < base.step_hours
+    with pytest.raises(ConfigError, match="no such step class"):
+        estimate_from(tiny_study, cfg, [1], {"gpu": 2.0})
+    with pytest.raises(ConfigError, match=r"other observations \(height 16 there, 24 here\)"):
+        estimate_from(tiny_study, load_reproduce_config("tiny", {"observation": {"height": 24}}), [1])
+
+
+def test_bad_speedups_are_one_line(tiny_study: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    for bad in ("bnn", "bnn=fast", "bnn=0"):
+        assert main(["estimate", str(tiny_study), "--preset", "tiny", "--speedup", bad]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 3 and all("--speedup" in line for line in err)
