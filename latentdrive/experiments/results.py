@@ -23,7 +23,13 @@ from latentdrive.evaluate.aggregate import seed_interval
 from latentdrive.evaluate.stats import json_values, paired_test, rate_ci
 from latentdrive.experiments.graph import Graph, StepRecord
 from latentdrive.experiments.steps import OUTCOMES, PROBES, RUN
-from latentdrive.experiments.study import ABLATIONS, REPS, ReproduceConfig
+from latentdrive.experiments.study import (
+    ABLATIONS,
+    REPS,
+    ReproduceConfig,
+    policy_name,
+    reference_name,
+)
 from latentdrive.fileio import MAX_JSON_BYTES, read_json, read_text
 from latentdrive.outcome import EpisodeOutcome, outcomes_from_json
 
@@ -127,8 +133,8 @@ class _Study:
                 self.eps[name] = _load(graph.folder(out, name) / OUTCOMES)
 
     def seeds(self, rep: str, train: str, prefix: str = "evaluate/") -> list[Episodes]:
-        return [self.eps[f"{prefix}policy/{rep}/{train}/s{k}"] for k in range(self.cfg.seeds)
-                if f"{prefix}policy/{rep}/{train}/s{k}" in self.eps]
+        names = [prefix + policy_name(rep, train, k) for k in range(self.cfg.seeds)]
+        return [self.eps[n] for n in names if n in self.eps]
 
     def kind(self, rep: str, train: str, tests: Sequence[str] | None = None) -> dict[str, Any]:
         """A policy kind's failure and crash rates per test set, over its seeds."""
@@ -162,7 +168,7 @@ class _Study:
 
     def against_reference(self, rep: str, train: str, ref: str, test: str = MIXED) -> list[dict[str, Any]]:
         """Each seed of a policy kind against a reference on the same episodes (failure)."""
-        ref_eps = _subset(self.eps[f"evaluate/ref/{ref}"], test)
+        ref_eps = _subset(self.eps[reference_name(ref)], test)
         return [paired_test(_flags(_subset(e, test), "failure"), _flags(ref_eps, "failure")).as_dict()
                 for e in self.seeds(rep, train)]
 
@@ -193,7 +199,7 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
     res: dict[str, Any] = {"scenarios": scen, "seeds": cfg.seeds, "tests": st.tests,
                            "evaluation": {"episodes_per_scenario": cfg.evaluate.episodes, "envs": cfg.evaluate.envs,
                                           "seed_offset": cfg.evaluate.seed_offset}}
-    res["references"] = {ref: {t: _rates(_subset(st.eps[f"evaluate/ref/{ref}"], t)) for t in st.tests}
+    res["references"] = {ref: {t: _rates(_subset(st.eps[reference_name(ref)], t)) for t in st.tests}
                          for ref in cfg.evaluate.references}
 
     # Bottleneck vs baseline: each scenario's oracle, and the mix policy on the mixed test set.
@@ -227,9 +233,9 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
             "finetuned": st.kind(rep, f"{t}-finetuned", [t])[t]["failure"],
             "scratch": st.kind(rep, t, [t])[t]["failure"],
             "zero_shot": st.kind(rep, f"without-{t}", [t])[t]["failure"],
-            "curves": {"finetuned": [_curve(graph.folder(out, f"policy/{rep}/{t}-finetuned/s{k}") / RUN, t)
+            "curves": {"finetuned": [_curve(graph.folder(out, policy_name(rep, f"{t}-finetuned", k)) / RUN, t)
                                      for k in range(cfg.seeds)],
-                       "scratch": [_curve(graph.folder(out, f"policy/{rep}/{t}/s{k}") / RUN, t)
+                       "scratch": [_curve(graph.folder(out, policy_name(rep, t, k)) / RUN, t)
                                    for k in range(cfg.seeds)]},
         } for rep in REPS}}
 

@@ -38,7 +38,7 @@ from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.rl.policy import scenario_hashes
 from latentdrive.scenarios import SCENARIOS, RewardConfig, check_scenario_names
 
-__all__ = ["PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config"]
+__all__ = ["PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config", "policy_name", "reference_name"]
 
 PRESETS = ("tiny", "quick", "paper")
 PRESETS_DIR = Path(__file__).parent / "presets"
@@ -152,8 +152,15 @@ def load_reproduce_config(preset: str, overrides: dict[str, Any] | None = None) 
     return load_preset(ReproduceConfig, preset, {p: PRESETS_DIR / f"reproduce-{p}.yaml" for p in PRESETS}, overrides)
 
 
-def _policy_name(rep: str, train_set: str, seed: int) -> str:
+def policy_name(rep: str, train_set: str, seed: int) -> str:
+    """The step that trains representation ``rep`` on ``train_set`` (a scenario, ``mixed``,
+    ``without-<scenario>``, ``<scenario>-finetuned``) from training seed ``seed``."""
     return f"policy/{rep}/{train_set}/s{seed}"
+
+
+def reference_name(ref: str) -> str:
+    """The step that evaluates reference policy ``ref``."""
+    return f"evaluate/ref/{ref}"
 
 
 def build_graph(cfg: ReproduceConfig) -> Graph:
@@ -196,7 +203,7 @@ def build_graph(cfg: ReproduceConfig) -> Graph:
         inputs = {"bnn": bnn_for[rep]} if rep in bnn_for else {}
         if init is not None:
             inputs["init"] = init
-        name = _policy_name(rep, train_set, seed)
+        name = policy_name(rep, train_set, seed)
         steps.append(Step(name, "policy", {"train": pcfg, "specs": specs}, inputs, cost=10 + steps_ / _RATE[rep]))
         steps.append(Step(f"evaluate/{name}", "evaluate", {"eval": eval_cfg, "specs": specs}, {"policy": name},
                           cost=eval_cost))
@@ -216,14 +223,14 @@ def build_graph(cfg: ReproduceConfig) -> Graph:
             if exp.transfer_target:
                 t = exp.transfer_target
                 policy(rep, f"{t}-finetuned", (t,), seed, cfg.policy.finetune_steps,
-                       init=_policy_name(rep, f"without-{t}", seed))
+                       init=policy_name(rep, f"without-{t}", seed))
         if exp.ablations:
             for rep in ABLATIONS:
                 policy(rep, "mixed", cfg.scenarios, seed, cfg.policy.steps)
 
     for ref in ev.references:
         planner = ev.planner.model_dump(mode="json") if ref == "plan" else None
-        steps.append(Step(f"evaluate/ref/{ref}", "evaluate", {"eval": {**eval_cfg, "planner": planner}, "reference": ref,
+        steps.append(Step(reference_name(ref), "evaluate", {"eval": {**eval_cfg, "planner": planner}, "reference": ref,
                                                               "specs": specs},
                           cost=eval_cost * (40 if ref == "plan" else 1)))
     if exp.probe_episodes:
@@ -237,7 +244,7 @@ def build_graph(cfg: ReproduceConfig) -> Graph:
             per_step = 0.05 if backend == "fast" else 3.0
             for seed in range(cfg.seeds):
                 for rep in REPS:
-                    name = _policy_name(rep, "mixed", seed)
+                    name = policy_name(rep, "mixed", seed)
                     steps.append(Step(f"cross/{backend}/{name}", "evaluate", {"eval": small, "specs": specs},
                                       {"policy": name}, cost=ev.cross_backend_episodes * len(cfg.scenarios) * 30 * per_step))
     return Graph(steps)
