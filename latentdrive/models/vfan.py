@@ -42,7 +42,7 @@ from latentdrive.actions import N_ACTIONS
 from latentdrive.config import Config
 from latentdrive.models.bottleneck import BottleneckNetwork
 
-__all__ = ["FEATURE_CHUNK", "LATENT_MODES", "MODES", "Mode", "QNetwork", "VFANConfig"]
+__all__ = ["FEATURE_CHUNK", "LATENT_MODES", "MODES", "Mode", "QNetwork", "VFANConfig", "encode_in_chunks"]
 
 Mode = Literal["raw", "latent", "latent-random", "end-to-end"]
 MODES: tuple[str, ...] = ("raw", "latent", "latent-random", "end-to-end")
@@ -103,6 +103,13 @@ class VFANBody(nn.Module):
             elif not isinstance(layer, nn.Flatten):
                 h = layer(h)
         return h
+
+
+def encode_in_chunks(encoder: BottleneckNetwork, obs: Tensor, chunk: int) -> Tensor:
+    """``encoder.encode`` of ``obs`` ``(B, 4, T, H, W)`` in near-equal chunks of at most ``chunk``."""
+    if obs.shape[0] <= chunk:
+        return encoder.encode(obs)
+    return torch.cat([encoder.encode(c) for c in obs.tensor_split(-(-obs.shape[0] // chunk))])
 
 
 class QNetwork(nn.Module):
@@ -175,19 +182,17 @@ class QNetwork(nn.Module):
     def features(self, obs: Tensor) -> Tensor:
         """Observations ``(B, 4, T, H, W)`` → what replay stores for them (no gradient).
 
-        The frozen encoder runs on :data:`FEATURE_CHUNK` observations at a time: on a CPU a
-        whole vector step's batch spills its first layer's activations out of the cache,
-        and the chunked pass is about 1.5× faster (``latentdrive bench --train`` prints
-        both). Chunks are of near-equal sizes (never a lone observation, which a CPU
-        computes by other kernels), and a row's latents then do not depend on the chunking.
+        On a CPU the frozen encoder takes :data:`FEATURE_CHUNK` observations at a time: a
+        vector step's whole batch spills its first layer's activations out of the cache
+        (``latentdrive bench --train`` prints the encoder's rate both ways, measured inside
+        the training loop). Chunks are of near-equal sizes, never a lone observation, which
+        a CPU computes by other kernels.
         """
         if self.mode not in LATENT_MODES:
             return obs
         assert self.encoder is not None
-        if obs.device.type != "cpu" or obs.shape[0] <= FEATURE_CHUNK:
-            return self.encoder.encode(obs)
-        n_chunks = -(-obs.shape[0] // FEATURE_CHUNK)
-        return torch.cat([self.encoder.encode(c) for c in obs.tensor_split(n_chunks)])
+        chunk = FEATURE_CHUNK if obs.device.type == "cpu" else obs.shape[0]
+        return encode_in_chunks(self.encoder, obs, chunk)
 
     def forward(self, stored: Tensor) -> Tensor:
         """Stored inputs ``(B, *stored_shape)`` → Q-values ``(B, n_actions)``."""

@@ -84,24 +84,34 @@ class FeatureCache:
     """What replay stores for the latest observations, computed once.
 
     Latent modes encode each observation with the frozen encoder once; the learner and
-    the acting policy both read the cached result for the same array.
+    the acting policy both read the cached result for the same array. Callers say which
+    agents they need: an AV that has finished its mission or crashed stays in the arrays
+    until its episode ends, and its observations need no encoding (its rows hold zeros
+    until some caller needs them).
     """
 
     def __init__(self, net: QNetwork, device: torch.device) -> None:
         self.net, self.device = net, device
         self._key: NDArray[np.float32] | None = None
         self._value: torch.Tensor | None = None
+        self._have: NDArray[np.bool_] | None = None
         self.seconds = 0.0  # wall time spent computing features (for the benchmark)
 
-    def __call__(self, obs: NDArray[np.float32]) -> torch.Tensor:
-        """Features ``(num_envs, n_av, *stored_shape)`` of ``obs`` ``(num_envs, n_av, 4, T, H, W)``."""
+    def __call__(self, obs: NDArray[np.float32], need: NDArray[np.bool_] | None = None) -> torch.Tensor:
+        """Features ``(num_envs, n_av, *stored_shape)`` of ``obs`` ``(num_envs, n_av, 4, T, H, W)``,
+        exact wherever ``need`` ``(num_envs, n_av)`` is True (everywhere when None)."""
+        lead = obs.shape[:2]
         if obs is not self._key:
+            self._key, self._have = obs, np.zeros(lead, dtype=bool)
+            self._value = torch.zeros(*lead, *self.net.stored_shape, device=self.device)
+        assert self._value is not None and self._have is not None
+        missing = ~self._have if need is None else need & ~self._have
+        if missing.any():
             t0 = time.perf_counter()
-            flat = torch.from_numpy(obs.reshape(-1, *obs.shape[2:])).to(self.device)
-            self._value = self.net.features(flat).reshape(*obs.shape[:2], *self.net.stored_shape)
-            self._key = obs
+            ei, ai = np.nonzero(missing)
+            self._value[ei, ai] = self.net.features(torch.from_numpy(obs[ei, ai]).to(self.device))
+            self._have |= missing
             self.seconds += time.perf_counter() - t0
-        assert self._value is not None
         return self._value
 
     def encode(self, obs: NDArray[np.float32]) -> torch.Tensor:
@@ -125,7 +135,7 @@ def epsilon_greedy(net: QNetwork, cache: FeatureCache, rng: np.random.Generator,
     whoever is active, so the stream does not depend on the episodes' course."""
 
     def policy(inp: PolicyInput) -> NDArray[np.int64]:
-        greedy = q_values(net, cache(inp.obs)).argmax(dim=-1).cpu().numpy()
+        greedy = q_values(net, cache(inp.obs, inp.active)).argmax(dim=-1).cpu().numpy()
         explore = rng.random(greedy.shape) < eps()
         random = rng.integers(0, N_ACTIONS, size=greedy.shape)
         return np.where(explore, random, greedy).astype(np.int64)
@@ -140,7 +150,7 @@ def greedy_policy(net: QNetwork, device: torch.device) -> Callable[[], Policy]:
         cache = FeatureCache(net, device)
 
         def policy(inp: PolicyInput) -> NDArray[np.int64]:
-            return q_values(net, cache(inp.obs)).argmax(dim=-1).cpu().numpy().astype(np.int64)
+            return q_values(net, cache(inp.obs, inp.active)).argmax(dim=-1).cpu().numpy().astype(np.int64)
 
         return policy
 

@@ -111,7 +111,9 @@ class Learner:
         """Store the step's transitions; returns the agents' current observation ids."""
         ag = rec.agents
         ei, ai = np.nonzero(ag.acting)
-        after = cache(rec.obs_after)  # encoded once: the policy reuses it on the next step
+        # Encoded once: the policy reuses it on the next step. Needed: where a transition
+        # leads, and every agent of a new episode; not the AVs already done.
+        after = cache(rec.obs_after, ag.acting | rec.ended[:, None])
         nxt = after[ei, ai]
         ended_rows = rec.ended[ei]
         if ended_rows.any():

@@ -107,3 +107,28 @@ def test_latent_network_stores_latents():
     net = build_network(cfg, enc.cfg)
     assert net.stored_shape == (3, 16)
     assert net(torch.zeros(2, 3, 16)).shape == (2, 5)
+
+
+def test_the_feature_cache_encodes_each_needed_observation_once_and_no_other(monkeypatch):
+    cfg = PolicyTrainConfig(mode="latent-random", observation=OBS)
+    net = build_network(cfg, BottleneckConfig.for_observation(cfg.observation))
+    encoded: list[int] = []
+    features = net.features
+
+    def counting(x: torch.Tensor) -> torch.Tensor:
+        encoded.append(len(x))
+        return features(x)
+
+    monkeypatch.setattr(net, "features", counting)
+    cache = FeatureCache(net, torch.device("cpu"))
+    obs = np.random.default_rng(0).random((3, 2, *cfg.observation.shape), dtype=np.float32)
+    need = np.array([[True, False], [True, True], [False, False]])
+    got = cache(obs, need)
+    assert encoded == [3] and not got[~torch.from_numpy(need)].any()
+    with torch.no_grad():
+        want = features(torch.from_numpy(obs.reshape(-1, *obs.shape[2:]))).reshape(3, 2, *net.stored_shape)
+    torch.testing.assert_close(got[torch.from_numpy(need)], want[torch.from_numpy(need)], atol=1e-6, rtol=1e-5)
+    cache(obs, need)  # the same array again: nothing to do
+    cache(obs)  # now every row: only the three missing ones are encoded
+    assert encoded == [3, 3]
+    torch.testing.assert_close(cache(obs), want, atol=1e-6, rtol=1e-5)
