@@ -10,8 +10,15 @@ import argparse
 import json
 import sys
 from collections.abc import Sequence
+from typing import NoReturn
 
-from latentdrive.config import ConfigError, LatentDriveError, parse_override_args
+from latentdrive.config import (
+    ConfigError,
+    LatentDriveError,
+    nonnegative_int,
+    parse_override_args,
+    positive_int,
+)
 from latentdrive.data.cli import add_collect_parser
 from latentdrive.experiments.policy_cli import add_policy_parsers
 from latentdrive.experiments.reproduce_cli import add_reproduce_parsers
@@ -159,6 +166,9 @@ def _cmd_validate_backend(args: argparse.Namespace) -> int:
     names = args.scenarios.split(",") if args.scenarios else list(SCENARIOS)
     for name in names:
         get_spec(name)
+    unknown = [p for p in args.policies.split(",") if p not in ("random", "idle")]
+    if unknown:
+        raise LatentDriveError(f"--policies: unknown {', '.join(map(repr, unknown))} (known: random, idle)")
     if args.episodes < 2:
         raise LatentDriveError("--episodes must be at least 2")
     _check_output("--json", args.json)
@@ -238,8 +248,15 @@ def _add_set(parser: argparse.ArgumentParser, help: str) -> None:
     parser.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE", help=help)
 
 
+class _Parser(argparse.ArgumentParser):
+    """Usage errors on one line, like every other error (sub-command parsers inherit it)."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"latentdrive: error: {LatentDriveError(message)} (see {self.prog} --help)\n")
+
+
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="latentdrive", description=__doc__.splitlines()[0])
+    p = _Parser(prog="latentdrive", description=__doc__.splitlines()[0])
     sub = p.add_subparsers(dest="command", required=True)
 
     s = sub.add_parser("scenarios", help="list the scenarios and their settings")
@@ -250,8 +267,8 @@ def build_parser() -> argparse.ArgumentParser:
     s = sub.add_parser("show", help="draw a scenario beside an agent's four VelocityMap channels")
     s.add_argument("scenario", help="scenario name or spec .yaml")
     s.add_argument("--out", required=True, help="PNG file to write")
-    s.add_argument("--steps", type=int, default=4, help="policy steps to show (default 4)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--steps", type=positive_int, default=4, help="policy steps to show (default 4)")
+    s.add_argument("--seed", type=nonnegative_int, default=0)
     s.add_argument("--policy", choices=["random", "idle"], default="random")
     s.add_argument("--agent", type=int, default=0, help="which AV's view to show")
     _add_set(s, "config override, repeatable (--set n_av=3 --set observation.frames=2)")
@@ -263,7 +280,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scenarios", default="", help="comma-separated names (default: all five)")
     s.add_argument("--steps", type=int, default=50, help="policy steps per scenario and backend (default 50)")
     s.add_argument("--batch-size", type=int, default=64, help="environments per fast batch (default 64)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonnegative_int, default=0)
     s.add_argument("--json", default="", help="also write the rows to this JSON file")
     s.add_argument("--train", action="store_true",
                    help="benchmark the training loop instead: updates/s, agent-transitions/s and where the time goes, per mode "
@@ -280,7 +297,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--scenarios", default="", help="comma-separated names (default: all five)")
     s.add_argument("--episodes", type=int, default=200, help="seeded episodes per scenario and policy (default 200)")
     s.add_argument("--policies", default="random,idle", help="comma-separated: random, idle (default both)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonnegative_int, default=0)
     s.add_argument("--json", default="", help="also write the rows to this JSON file")
     s.set_defaults(func=_cmd_validate_backend)
 
@@ -297,7 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="L2 weight of non-empty target cells (default 1: the paper's plain L2)")
     s.add_argument("--channels", type=int, nargs="+", default=[16, 32], help="encoder channel widths (default 16 32)")
     s.add_argument("--val-fraction", type=float, default=0.15, help="share of episodes held out (default 0.15)")
-    s.add_argument("--seed", type=int, default=0)
+    s.add_argument("--seed", type=nonnegative_int, default=0)
     s.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR")
     s.add_argument("-q", "--quiet", action="store_true")
     _add_set(s, "training override, repeatable (--set batch_size=32 --set lr=3e-4); "
@@ -322,11 +339,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help, or a usage error already printed on one line
+        return exc.code if isinstance(exc.code, int) else 2
     try:
         return int(args.func(args))
     except LatentDriveError as exc:
         print(f"latentdrive: error: {exc}", file=sys.stderr)
+        return 2
+    except OSError as exc:  # a path in the way (a file where a folder goes), a full disk, no permission
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"latentdrive: error: {LatentDriveError(f'{exc.strerror or exc}{where}')}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print("latentdrive: interrupted", file=sys.stderr)

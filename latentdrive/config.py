@@ -9,6 +9,7 @@ without a traceback. The resolved config is saved beside every artifact; its
 
 from __future__ import annotations
 
+import argparse
 import hashlib
 import json
 from collections.abc import Mapping
@@ -31,7 +32,10 @@ __all__ = [
     "load_preset",
     "load_yaml",
     "merge_overrides",
+    "nonnegative_int",
     "parse_override_args",
+    "positive_int",
+    "unit_fraction",
     "validate",
 ]
 
@@ -99,6 +103,40 @@ def merge_overrides(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> di
         else:
             out[head] = value
     return out
+
+
+def nonnegative_int(text: str) -> int:
+    """argparse type of a seed or a count that may be 0."""
+    value = _int(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be 0 or more, got {value}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type of a count that must be at least 1."""
+    value = _int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
+def unit_fraction(text: str) -> float:
+    """argparse type of a share in (0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1], got {text}")
+    return value
+
+
+def _int(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
 
 
 def parse_override_args(items: list[str]) -> dict[str, Any]:

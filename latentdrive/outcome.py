@@ -78,10 +78,13 @@ def outcomes_from_json(items: object) -> list[EpisodeOutcome]:
             ret = np.asarray(d["agent_return"], dtype=np.float64)
             if crashed.ndim != 1 or crashed.shape != arrived.shape or crashed.shape != ret.shape:
                 raise ValueError("per-agent arrays differ in shape")
-            out.append(EpisodeOutcome(scenario=str(d["scenario"]), env_index=int(d["env_index"]),
-                                      episode_index=int(d["episode_index"]), seed=int(d["seed"]), steps=int(d["steps"]),
-                                      agent_crashed=crashed, agent_arrived=arrived, agent_return=ret,
-                                      mean_speed=float(d["mean_speed"]), traffic_crashed=bool(d["traffic_crashed"])))
+            o = EpisodeOutcome(scenario=str(d["scenario"]), env_index=int(d["env_index"]),
+                               episode_index=int(d["episode_index"]), seed=int(d["seed"]), steps=int(d["steps"]),
+                               agent_crashed=crashed, agent_arrived=arrived, agent_return=ret,
+                               mean_speed=float(d["mean_speed"]), traffic_crashed=bool(d["traffic_crashed"]))
+            if min(o.env_index, o.episode_index, o.seed, o.steps) < 0 or not o.mean_speed >= 0:
+                raise ValueError("a negative count, seed or speed")
+            out.append(o)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"outcome {i}: {exc}") from None
     return out

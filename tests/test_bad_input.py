@@ -189,6 +189,16 @@ CASES = [
     ("evaluate-unknown-scenario", "evaluate --policy idle --scenarios lake -q", "unknown scenario 'lake'"),
     ("resume-a-non-run", "train-policy {w}/ds --resume -q", "not a policy run"),
     ("train-policy-unknown-scenario", "train-policy {w}/new_pol --mode raw --scenarios lake -q", "lake"),
+    # Usage errors: one line too, naming the option.
+    ("negative-seed", "show merge --out {w}/x.png --seed -1", "--seed: must be 0 or more, got -1"),
+    ("negative-bench-seed", "bench --seed -1 --scenarios merge --steps 1", "--seed"),
+    ("show-no-steps", "show merge --out {w}/x.png --steps 0", "--steps: must be at least 1"),
+    ("unknown-option", "bench --bogus", "unrecognized arguments: --bogus"),
+    ("unknown-choice", "bench --backend lake", "invalid choice: 'lake'"),
+    ("seed-not-a-number", "train-policy {w}/new_pol --seed x", "expected an integer, got 'x'"),
+    ("validate-unknown-policy", "validate-backend --policies bogus --scenarios merge", "unknown 'bogus'"),
+    ("gpu-fraction-above-one", "reproduce {w}/new_study --gpu-fraction 2", "--gpu-fraction: must be in (0, 1]"),
+    ("ray-host-unknown", "reproduce {w}/new_study --preset tiny --ray no-such-host.invalid:6379", "cannot resolve host"),
 ]
 
 

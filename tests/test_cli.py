@@ -83,3 +83,16 @@ def test_scenarios_prints_how_far_each_mission_is(capsys):
     assert main(["scenarios", "merge"]) == 0
     out = capsys.readouterr().out
     assert "300 m, 67%" in out and "roundabout" not in out
+
+
+def test_a_path_in_the_way_is_one_line(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+    # Regression: a file where a folder goes (or the reverse) ended commands in a traceback.
+    import latentdrive.cli as cli
+
+    def blocked(args: object) -> int:
+        raise IsADirectoryError(21, "Is a directory", "study/report.md\nx")
+
+    monkeypatch.setattr(cli, "_cmd_scenarios", blocked)  # build_parser binds it when main runs
+    assert cli.main(["scenarios"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["latentdrive: error: Is a directory: study/report.md\\nx"]

@@ -23,7 +23,8 @@ def saved_configs(run_dir: Path) -> dict[str, Any] | None:
     p = run_dir / CHECKPOINT_NAME
     if not p.exists():
         return None
-    return read_checkpoint(p)[1]["config"]
+    config: dict[str, Any] | None = read_checkpoint(p)[1].get("config")
+    return config
 
 
 def _changed_fields(saved: Any, cfg: Config, ignore: frozenset[str] = frozenset()) -> list[str]:

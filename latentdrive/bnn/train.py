@@ -376,9 +376,11 @@ def load_trained_bottleneck(
     when the checkpoint is missing, corrupt, or does not match its own config.
     """
     ckpt = Path(run_dir) / CHECKPOINT_NAME
-    saved = saved_configs(Path(run_dir))
-    if saved is None:
+    if not ckpt.exists():
         raise CheckpointError(f"{ckpt}: no checkpoint in {run_dir}")
+    saved = saved_configs(Path(run_dir))
+    if not isinstance(saved, dict):
+        raise CheckpointError(f"{ckpt}: holds no training config (not a BNN checkpoint)")
     try:
         model_cfg = validate(BottleneckConfig, saved["model"])
     except (KeyError, TypeError, ValueError) as exc:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from latentdrive.config import load_yaml, merge_overrides, parse_override_args
+from latentdrive.config import load_yaml, merge_overrides, nonnegative_int, parse_override_args
 
 __all__ = ["add_collect_parser"]
 
@@ -45,7 +45,7 @@ def add_collect_parser(subparsers: Any) -> argparse.ArgumentParser:
     s.add_argument("--scenarios", default="", help="comma-separated names (default: all five)")
     s.add_argument("--episodes", type=int, default=None, help="episodes per scenario (default 200)")
     s.add_argument("--workers", type=int, default=None, help="worker processes (default 1)")
-    s.add_argument("--seed", type=int, default=None, help="root seed (default 0)")
+    s.add_argument("--seed", type=nonnegative_int, default=None, help="root seed (default 0)")
     s.add_argument("--behaviour", choices=["mixed", "random", "rule"], default=None,
                    help="behaviour policy (default mixed)")
     s.add_argument("--rule-fraction", type=float, default=None,

@@ -86,6 +86,8 @@ def read_report(out: Path) -> dict[str, Any]:
     """
     path = out / "report.json"
     data = read_json(path, limit=MAX_JSON_BYTES, what="study report", error=ConfigError)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: not a BNN study report (a JSON {type(data).__name__}, not an object)")
     try:
         report = _Report.model_validate(data)
     except ValidationError as exc:

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import math
 import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -136,6 +137,8 @@ class Graph:
                              wall_s=float(data["wall_s"]), peak_rss_mb=float(data["peak_rss_mb"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{path}: not a step record ({type(exc).__name__}: {exc})") from None
+        if not all(math.isfinite(v) and v >= 0 for v in (rec.wall_s, rec.peak_rss_mb)):
+            raise ConfigError(f"{path}: not a step record (wall_s {rec.wall_s}, peak_rss_mb {rec.peak_rss_mb})")
         if rec.key != self.keys[name] or rec.name != name:
             raise ConfigError(f"{path}: records step {rec.name!r} with key {rec.key}, not {name!r} with key {self.keys[name]}")
         return rec

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from latentdrive.config import ConfigError, merge_overrides, parse_override_args
+from latentdrive.config import ConfigError, merge_overrides, nonnegative_int, parse_override_args
 from latentdrive.fileio import output_problem
 
 __all__ = ["add_policy_parsers"]
@@ -180,7 +180,7 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("--bnn", default=None, help="BNN run directory (train-bnn); required by --mode latent")
     s.add_argument("--scenarios", default="", help="comma-separated scenarios (default merge); a mixture plays each on its share of the envs")
     s.add_argument("--steps", type=int, default=None, help="budget in agent-transitions (default 50000)")
-    s.add_argument("--seed", type=int, default=None, help="training seed (default 0)")
+    s.add_argument("--seed", type=nonnegative_int, default=None, help="training seed (default 0)")
     s.add_argument("--envs", type=int, default=None, help="environments stepped together (default 16)")
     s.add_argument("--backend", choices=["fast", "highway"], default=None, help="simulator (default fast)")
     s.add_argument("--init-from", default=None, help="start from another policy run's weights (fine-tuning)")
@@ -192,7 +192,7 @@ def add_policy_parsers(sub: Any) -> None:
 
     s = sub.add_parser("evaluate", help="failure, crash and success rates of policies on held-out episodes",
                        description="Evaluate a trained run and the reference policies on the same held-out "
-                       "episodes (seeds training never uses), per scenario and mixed, with 95%% intervals.")
+                       "episodes (seeds training never uses), per scenario and mixed, with 95% intervals.")
     s.add_argument("run", nargs="?", default="", help="policy run directory (optional)")
     s.add_argument("--policy", default=None,
                    help="reference policies to include, comma-separated, or 'none' (default: random, idle, stop, "

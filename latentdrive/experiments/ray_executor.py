@@ -18,6 +18,7 @@ Ray is an optional dependency (``pip install latentdrive[ray]``); only this modu
 
 from __future__ import annotations
 
+import socket
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,7 @@ from latentdrive.experiments.executor import (
 )
 from latentdrive.experiments.graph import Graph, Step, StepRecord
 
-__all__ = ["run_ray"]
+__all__ = ["check_ray_address", "run_ray"]
 
 
 class _RayRunner:
@@ -66,6 +67,17 @@ class _RayRunner:
         return rec
 
 
+def check_ray_address(address: str) -> None:
+    """Refuse an address whose host does not resolve: Ray itself retries such a name for minutes."""
+    if address in ("auto", "local"):
+        return
+    host = address.split("://", 1)[-1].rsplit(":", 1)[0].strip("[]")
+    try:
+        socket.getaddrinfo(host, None)
+    except (socket.gaierror, UnicodeError) as exc:
+        raise LatentDriveError(f"--ray {address}: cannot resolve host {host!r} ({exc})") from None
+
+
 def run_ray(graph: Graph, out: Path, kinds: Mapping[str, StepKind], address: str, *, retries: int = 2,
             gpu_fraction: float = 1.0, progress: bool = True, local_cpus: int | None = None,
             runtime_env: dict[str, Any] | None = None) -> dict[str, StepRecord]:
@@ -85,6 +97,7 @@ def run_ray(graph: Graph, out: Path, kinds: Mapping[str, StepKind], address: str
     if not 0 < gpu_fraction <= 1:
         raise LatentDriveError(f"--gpu-fraction must be in (0, 1], got {gpu_fraction}")
     check_kinds(graph, kinds)
+    check_ray_address(address)
     started = not ray.is_initialized()
     if started:
         try:

@@ -64,6 +64,10 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
     if workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {workers}")
     graph = build_graph(cfg)
+    if ray:
+        from latentdrive.experiments.ray_executor import check_ray_address
+
+        check_ray_address(ray)  # before anything is written
     out.mkdir(parents=True, exist_ok=True)
     with dir_lock(out, "reproduce"):
         pending = graph.pending(out)

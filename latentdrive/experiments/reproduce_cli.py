@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
-from latentdrive.config import LatentDriveError, parse_override_args
+from latentdrive.config import LatentDriveError, parse_override_args, unit_fraction
 
 __all__ = ["add_reproduce_parsers"]
 
@@ -73,7 +73,7 @@ def add_reproduce_parsers(sub: Any) -> None:
     s.add_argument("--ray", metavar="ADDRESS", default=None,
                    help="run the steps as Ray tasks on the cluster at ADDRESS ('auto': the one this machine joined; "
                    "'local': a private instance); OUT must be on a filesystem every node sees")
-    s.add_argument("--gpu-fraction", type=float, default=1.0,
+    s.add_argument("--gpu-fraction", type=unit_fraction, default=1.0,
                    help="with --ray, the share of a GPU each training step asks for (default 1)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",

@@ -15,12 +15,13 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
+from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 from scipy.stats import spearmanr
 
 from latentdrive.config import ConfigError, describe_validation_error
 from latentdrive.evaluate.aggregate import seed_interval
 from latentdrive.evaluate.stats import json_values, paired_test, rate_ci
+from latentdrive.experiments.bnn_report import read_report
 from latentdrive.experiments.graph import Graph, StepRecord
 from latentdrive.experiments.steps import OUTCOMES, PROBES, RUN
 from latentdrive.experiments.study import (
@@ -39,36 +40,26 @@ MIXED = "mixed"
 Episodes = list[EpisodeOutcome]
 
 
-def _load(path: Path) -> Episodes:
-    data = read_json(path, limit=1 << 30, what="evaluation outcomes", error=ConfigError)
+def _load(path: Path, eval_cfg: Mapping[str, Any]) -> Episodes:
+    """A finished evaluation step's outcomes: every episode its config asked for."""
     try:
-        return outcomes_from_json(data)
+        data = read_json(path, limit=1 << 30, what="evaluation outcomes", error=ConfigError)
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: missing, though its step is recorded as finished; delete "
+                          f"{path.parent} and run the study again") from None
+    try:
+        eps = outcomes_from_json(data)
     except ValueError as exc:
         raise ConfigError(f"{path}: {exc}") from None
+    for scen in eval_cfg["scenarios"]:
+        n = sum(o.scenario == scen for o in eps)
+        if n != eval_cfg["episodes"]:
+            raise ConfigError(f"{path}: {n} episodes of {scen}, not the {eval_cfg['episodes']} its step ran")
+    return eps
 
 
 class _Loose(BaseModel):
     model_config = ConfigDict(extra="allow", populate_by_name=True)
-
-
-class _BNNRun(_Loose):
-    latent_dim: int
-    lambda_: float = Field(alias="lambda")
-    val_recon: float | None = None
-    vehicle_recall: float | None = None
-    mean_between_scenario_distance: float | None = None
-    latent_scenarios: list[str] | None = None
-    latent_distance: list[list[float]] | None = None
-
-
-class _BNNReport(_Loose):
-    """What the study reads of the BNN study's ``report.json`` (other keys pass through)."""
-
-    runs: dict[str, _BNNRun]
-    raw_scenarios: list[str] | None = None
-    raw_distance: list[list[float]] | None = None
-    raw_mean_between_scenario_distance: float | None = None
-    noisy_input_vehicles: dict[str, Any] | None = None
 
 
 class _ProbeScore(_Loose):
@@ -130,7 +121,7 @@ class _Study:
         self.eps: dict[str, Episodes] = {}
         for name in graph.order:
             if graph.steps[name].kind == "evaluate":
-                self.eps[name] = _load(graph.folder(out, name) / OUTCOMES)
+                self.eps[name] = _load(graph.folder(out, name) / OUTCOMES, graph.steps[name].config["eval"])
 
     def seeds(self, rep: str, train: str, prefix: str = "evaluate/") -> list[Episodes]:
         names = [prefix + policy_name(rep, train, k) for k in range(self.cfg.seeds)]
@@ -239,9 +230,10 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
                                    for k in range(cfg.seeds)]},
         } for rep in REPS}}
 
-    bnn_path = graph.folder(out, "bnn/report") / "report.json"
-    bnn = _checked(bnn_path, read_json(bnn_path, limit=MAX_JSON_BYTES, what="BNN report", error=ConfigError),
-                   _BNNReport, "BNN study report")
+    try:
+        bnn = read_report(graph.folder(out, "bnn/report"))
+    except FileNotFoundError:
+        raise ConfigError(f"{graph.folder(out, 'bnn/report')}: the BNN study's report.json is missing") from None
     res["bnn"] = {"report": bnn, "policy_run": f"d{cfg.policy_bnn}",
                   "figures": str((graph.folder(out, "bnn/report") / "figures").relative_to(out))}
 

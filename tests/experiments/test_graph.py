@@ -122,6 +122,10 @@ def test_a_foreign_record_is_a_one_line_error(tmp_path: Path) -> None:
     with pytest.raises(ConfigError) as info:
         g.record(tmp_path, "alone")
     assert "\n" not in str(info.value) and str(path) in str(info.value)
+    for bad in ("NaN", -1.0):  # Regression: a NaN time reached the report as a TypeError
+        path.write_text(json.dumps({**data, "wall_s": bad}))
+        with pytest.raises(ConfigError, match=r"not a step record \(wall_s"):
+            g.record(tmp_path, "alone")
 
 
 def test_a_worker_killed_mid_step_fails_its_step_only(tmp_path: Path) -> None:

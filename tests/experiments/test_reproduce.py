@@ -131,18 +131,23 @@ def test_running_another_config_into_a_study_folder_says_so(tmp_path: Path, monk
 
 
 @pytest.mark.parametrize(("step", "file", "content", "needle"), [
-    ("bnn/report", "report.json", "{}", "runs"),
-    ("bnn/report", "report.json", '{"runs": {"d8": {"latent_dim": "eight", "lambda": 0}}}', "latent_dim"),
+    ("bnn/report", "report.json", "{}", "not a BNN study report"),
+    ("bnn/report", "report.json", "[]", "not an object"),
     ("probes", "probes.json", '{"raw": 1, "samples": {"train": 1, "test": 1}}', "raw"),
     ("probes", "probes.json", '{"raw": {}}', "samples"),
+    ("evaluate/ref/random", "outcomes.json", "[]", "0 episodes of roundabout"),
+    ("evaluate/ref/random", "outcomes.json", None, "missing, though its step is recorded as finished"),
 ])
 def test_a_damaged_step_result_is_a_one_line_error_and_the_report_is_kept(
         tiny_study: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str],
-        step: str, file: str, content: str, needle: str) -> None:
+        step: str, file: str, content: str | None, needle: str) -> None:
     out = tmp_path / "copy"
     shutil.copytree(tiny_study, out)
     graph = build_graph(load_reproduce_config("tiny"))
-    (graph.folder(out, step) / file).write_text(content)
+    if content is None:
+        (graph.folder(out, step) / file).unlink()
+    else:
+        (graph.folder(out, step) / file).write_text(content)
     report = (out / "report.md").read_bytes()
     capsys.readouterr()
     assert main(["report", str(out)]) == 2
