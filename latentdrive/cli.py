@@ -323,7 +323,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bnn-study", help="dataset, BNNs of latent size 16/32/64 and λ>0, evaluation, figures")
     s.add_argument("out", help="study directory (rerun the same command to resume)")
-    s.add_argument("--preset", default="small", help="tiny, small (default, ~40 min on a 2-core CPU), paper, or a .yaml file")
+    s.add_argument("--preset", default="small", help="tiny, small (default; a few hours on a 2-core CPU), paper, or a .yaml file")
     s.add_argument("-q", "--quiet", action="store_true")
     _add_set(s, "study override, repeatable (--set collect.episodes=20 --set train.mixed_epochs=4)")
     s.set_defaults(func=_cmd_bnn_study)
