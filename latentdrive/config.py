@@ -49,7 +49,8 @@ class ConfigError(LatentDriveError, ValueError):
 class Config(BaseModel):
     """Base of every config object: immutable, strict about unknown keys."""
 
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    # NaN and infinity are refused by every float field: NaN passes no range check silently.
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, allow_inf_nan=False)
 
     def replace(self: C, **changes: Any) -> C:
         """A validated copy with ``changes`` merged in (nested dicts merge recursively)."""
