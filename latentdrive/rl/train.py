@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import io
 import json
 import re
 import time
@@ -31,7 +32,7 @@ from latentdrive.config import ConfigError, config_hash
 from latentdrive.errors import first_line
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
-from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined
+from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined, read_log
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
@@ -211,7 +212,6 @@ class Learner:
         return segment + 1
 
 
-
 def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]:
     """The training loop proper: act ε-greedily, store the step's transitions, learn; yields each step."""
     cache = learner.cache
@@ -265,20 +265,36 @@ def _same_encoder(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> boo
     return all(k in b and torch.equal(a[k], b[k]) for k in keys)
 
 
-class _Log:
-    """metrics.csv, eval.csv and TensorBoard scalars; rows past a resumed checkpoint are dropped."""
+_LOGS = {METRICS: ("training log", _METRIC_COLUMNS), EVALS: ("evaluation log", _EVAL_COLUMNS)}
 
-    def __init__(self, run_dir: Path, resume_at: int | None) -> None:
+
+def _read_logs(run_dir: Path) -> dict[str, list[dict[str, str]]]:
+    """The rows of a run's metrics.csv and eval.csv, checked before anything is written."""
+    logs: dict[str, list[dict[str, str]]] = {}
+    for name, (what, cols) in _LOGS.items():
+        try:
+            logs[name] = read_log(run_dir / name, columns=cols, key="transitions", what=what)
+        except FileNotFoundError:
+            logs[name] = []
+    return logs
+
+
+class _Log:
+    """metrics.csv, eval.csv and TensorBoard scalars.
+
+    ``kept`` holds the rows (of :func:`_read_logs`) that a resumed run keeps, those up to
+    its checkpoint; ``resume_at`` is that checkpoint's transitions (None for a new run).
+    """
+
+    def __init__(self, run_dir: Path, kept: dict[str, list[dict[str, str]]], resume_at: int | None) -> None:
         self.files = {}
-        for name, cols in ((METRICS, _METRIC_COLUMNS), (EVALS, _EVAL_COLUMNS)):
+        for name, (_, cols) in _LOGS.items():
             path = run_dir / name
-            rows: list[dict[str, str]] = []
-            if resume_at is not None and path.exists():
-                with path.open(newline="") as f:
-                    rows = [r for r in csv.DictReader(f) if r.get("transitions", "").isdigit()
-                            and int(r["transitions"]) <= resume_at]
-            text = ",".join(cols) + "\n" + "".join(",".join(r.get(c, "") for c in cols) + "\n" for r in rows)
-            atomic_write_text(path, text)
+            buf = io.StringIO()
+            w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
+            w.writeheader()
+            w.writerows(kept.get(name, []))
+            atomic_write_text(path, buf.getvalue())
             fh = path.open("a", newline="")
             self.files[name] = (fh, csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore"))
         from torch.utils.tensorboard import SummaryWriter
@@ -353,11 +369,14 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
         vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend,
                        observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
         learner = Learner(cfg, net, device, cfg.envs * vec.n_av)
+        # Everything a resumption reads is checked before anything is written.
+        logs = _read_logs(root) if resume else {}
         segment = learner.load(root) if resume else 0
+        kept = {name: [r for r in rows if int(r["transitions"]) <= learner.transitions] for name, rows in logs.items()}
         _write_config(root, cfg, net, enc)
         if not resume:
             say(f"{cfg.mode}: {net.parameter_count()} parameters")
-        log = _Log(root, learner.transitions if resume else None)
+        log = _Log(root, kept, learner.transitions if resume else None)
         try:
             return _run(cfg, root, net, learner, vec, segment, device, log, progress)
         finally:
