@@ -19,10 +19,13 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
+from latentdrive.bnn.checkpoint import save_checkpoint
+from latentdrive.bnn.train import BNNTrainConfig
 from latentdrive.cli import main
 from latentdrive.config import validate
 from latentdrive.data.collect import CollectConfig, collect
 from latentdrive.experiments.bnn import BNNStudyConfig
+from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 
 TINY = {
     "scenarios": ["merge", "highway"], "episodes": 4, "shard_size": 40,
@@ -114,6 +117,14 @@ def ws(tmp_path_factory: pytest.TempPathFactory) -> Path:
         (w / name).mkdir()
         (w / name / "checkpoint.safetensors").write_bytes(data)
         (w / name / "split.json").write_text('{"train_episodes": [], "val_episodes": []}\n')
+    # A BNN run that train-bnn's defaults resume, whose training log is damaged.
+    model_cfg = BottleneckConfig(input_shape=(2, 16, 32), latent_dim=64, channels=(16, 32))
+    train_cfg = validate(BNNTrainConfig, {"lambda_distance": 0.0, "seed": 0, "foreground_weight": 1.0})
+    net = BottleneckNetwork(model_cfg)
+    save_checkpoint(w / "bnn_bad_log" / "checkpoint.safetensors", net, torch.optim.AdamW(net.parameters()),
+                    step=0, epoch=1, config={"train": train_cfg.model_dump(mode="json"),
+                                             "model": model_cfg.model_dump(mode="json")})
+    (w / "bnn_bad_log" / "metrics.csv").write_text("kind,step\nstep,abc\n")
     pol = {"kind": "policy", "train": {"mode": "raw", "scenarios": ["merge"]}, "encoder": None}
     (w / "pol_foreign").mkdir()
     (w / "pol_foreign" / "config.json").write_text(json.dumps(pol))
@@ -148,6 +159,7 @@ CASES = [
     ("resume-garbage-checkpoint", "train-bnn {w}/ds {w}/run_garbage --resume", "not a safetensors file"),
     ("resume-huge-header", "train-bnn {w}/ds {w}/run_huge_header --resume", "bad header length"),
     ("existing-run-without-resume", "train-bnn {w}/ds {w}/run_garbage", "exists: resume it"),
+    ("resume-damaged-log", "train-bnn {w}/ds {w}/bnn_bad_log --resume", "step 'abc', not a count"),
     # Collect: config files that are folders, binary, too big, too deep, not a mapping.
     ("config-is-a-folder", "collect {w}/new_ds --config {w}/folder.yaml", "is a folder"),
     ("config-is-binary", "collect {w}/new_ds --config {w}/bin.yaml", "not UTF-8"),
