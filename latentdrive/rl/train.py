@@ -24,10 +24,15 @@ from typing import Any
 
 import numpy as np
 import torch
-from safetensors.numpy import load_file as np_load_file
 from safetensors.numpy import save as np_save
+from safetensors.torch import load_file as st_load_file
 
-from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from latentdrive.bnn.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    save_checkpoint,
+    tensors_digest,
+)
 from latentdrive.config import ConfigError, config_hash
 from latentdrive.errors import first_line
 from latentdrive.evaluate.report import policy_report
@@ -160,13 +165,16 @@ class Learner:
         arrays = {k: np.ascontiguousarray(v) for k, v in self.replay.state().items()}
         # The replay first, under a new name; then the checkpoint that names it (atomic);
         # only then are older replays removed. A kill anywhere leaves a consistent pair.
+        # The checkpoint keeps the replay's digest: a damaged replay is refused on
+        # resumption rather than silently training on other transitions.
         name = f"replay-{segment}.safetensors"
         atomic_write_bytes(run_dir / name, np_save(arrays, metadata={"replay_added": str(self.replay.added)}))
         save_checkpoint(
             run_dir / CHECKPOINT, self.net, self.optimizer, step=self.updates, epoch=segment,
             config=self.cfg.model_dump(mode="json"), numpy_generator=self.rng,
             extra={"transitions": self.transitions, "updates": self.updates, "episodes": self.episodes,
-                   "segment": segment, "replay_added": self.replay.added, "replay": name},
+                   "segment": segment, "replay_added": self.replay.added, "replay": name,
+                   "replay_digest": tensors_digest({k: torch.from_numpy(v) for k, v in arrays.items()})},
             extra_tensors={f"target/{k}": v for k, v in self.target.state_dict().items()},
         )
         for old in run_dir.iterdir():
@@ -201,11 +209,18 @@ class Learner:
         if not (REPLAY_PATTERN.fullmatch(str(name)) or name == "replay.safetensors"):
             raise CheckpointError(f"{run_dir / CHECKPOINT}: names no valid replay file ({name!r})")
         try:
-            arrays = np_load_file(str(path))
-            self.replay.load_state(arrays)
+            tensors = st_load_file(str(path))
         except FileNotFoundError:
             raise CheckpointError(f"{path}: missing; the run cannot resume without its replay") from None
         except Exception as exc:  # the safetensors parser raises its own error types
+            raise CheckpointError(f"{path}: unusable replay ({first_line(exc)})") from None
+        # Checkpoints written before replays were digested have none to compare.
+        digest = info.extra.get("replay_digest")
+        if digest is not None and tensors_digest(tensors) != digest:
+            raise CheckpointError(f"{path}: corrupt replay (checksum mismatch with {CHECKPOINT})")
+        try:
+            self.replay.load_state({k: t.numpy() for k, t in tensors.items()})
+        except (KeyError, TypeError, ValueError) as exc:
             raise CheckpointError(f"{path}: unusable replay ({first_line(exc)})") from None
         if self.replay.added != replay_added:
             raise CheckpointError(f"{path}: replay does not belong to the checkpoint (written by another save)")

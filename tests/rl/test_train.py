@@ -120,6 +120,26 @@ def test_each_checkpoint_names_its_own_replay_and_older_ones_go(tmp_path, tiny):
     assert [p.name for p in (tmp_path / "r").glob("replay-*.safetensors")] == ["replay-3.safetensors"]
 
 
+def _files(root):
+    return {p: p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_a_damaged_replay_is_refused_on_resumption(tmp_path, tiny):
+    from latentdrive.bnn.checkpoint import CheckpointError
+
+    run = tmp_path / "r"
+    train_policy(tiny(mode="raw", steps=100), run, **_quiet())
+    (replay,) = run.glob("replay-*.safetensors")
+    data = bytearray(replay.read_bytes())
+    data[-3] ^= 0x01  # one bit of its tensor data: the safetensors header still parses
+    replay.write_bytes(bytes(data))
+    before = _files(run)
+    with pytest.raises(CheckpointError, match="corrupt replay") as exc:
+        train_policy(tiny(mode="raw", steps=200), run, resume=True, **_quiet())
+    assert str(exc.value).startswith(str(replay)) and "\n" not in str(exc.value)
+    assert _files(run) == before
+
+
 def test_evaluation_offsets_are_disjoint_sets():
     from latentdrive.seeds import MAX_ENVS, TRAINING_EVAL_OFFSET
 
