@@ -71,6 +71,8 @@ DATASETS: dict[str, Callable[[Path], object]] = {
 def ws(tmp_path_factory: pytest.TempPathFactory) -> Path:
     w = tmp_path_factory.mktemp("bad-input")
     collect(validate(CollectConfig, TINY), w / "ds", progress=False)
+    # One episode per scenario: none to hold out.
+    collect(validate(CollectConfig, {**TINY, "episodes": 1}), w / "ds_one_episode", progress=False)
     for name, damage in DATASETS.items():
         shutil.copytree(w / "ds", w / name)
         damage(w / name)
@@ -155,6 +157,8 @@ CASES = [
     ("binary-manifest", "train-bnn {w}/ds_binary_manifest {w}/new_run", "not UTF-8"),
     ("dataset-is-a-file", "train-bnn {w}/a_file {w}/new_run", "manifest"),
     ("val-fraction-out-of-range", "train-bnn {w}/ds {w}/new_run --val-fraction 1.5", "--val-fraction"),
+    ("val-fraction-zero", "train-bnn {w}/ds {w}/new_run --val-fraction 0", "--val-fraction must be in (0, 1)"),
+    ("nothing-to-hold-out", "train-bnn {w}/ds_one_episode {w}/new_run", "no validation episodes at val_fraction 0.15"),
     # Runs that hold an unusable checkpoint: refused before split.json is rewritten.
     ("resume-garbage-checkpoint", "train-bnn {w}/ds {w}/run_garbage --resume", "not a safetensors file"),
     ("resume-huge-header", "train-bnn {w}/ds {w}/run_huge_header --resume", "bad header length"),
