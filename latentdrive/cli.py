@@ -198,8 +198,9 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
     clash = sorted(set(model) & set(own))
     if clash:
         raise ConfigError(f"model.{clash[0]} is set by {own[clash[0]]}, not --set")
-    if not 0.0 <= args.val_fraction < 1.0:
-        raise ConfigError(f"--val-fraction must be in [0, 1), got {args.val_fraction}")
+    if not 0.0 < args.val_fraction < 1.0:
+        raise ConfigError(f"--val-fraction must be in (0, 1): training validates on the held-out episodes, "
+                          f"got {args.val_fraction}")
     base = {"lambda_distance": args.lam, "seed": args.seed, "foreground_weight": args.foreground_weight}
     if args.epochs is not None:
         if args.epochs < 1:
@@ -313,7 +314,7 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--foreground-weight", type=float, default=1.0,
                    help="L2 weight of non-empty target cells (default 1: the paper's plain L2)")
     s.add_argument("--channels", type=int, nargs="+", default=[16, 32], help="encoder channel widths (default 16 32)")
-    s.add_argument("--val-fraction", type=float, default=0.15, help="share of episodes held out (default 0.15)")
+    s.add_argument("--val-fraction", type=float, default=0.15, help="share of episodes held out for validation, in (0, 1) (default 0.15)")
     s.add_argument("--seed", type=nonnegative_int, default=0)
     s.add_argument("--resume", action="store_true", help="continue the run in RUN_DIR")
     s.add_argument("-q", "--quiet", action="store_true")

@@ -18,11 +18,14 @@ This module sits below every other one in the package and imports none of them b
 from __future__ import annotations
 
 import contextlib
+import csv
+import io
 import json
 import os
+import re
 import stat
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path, PurePosixPath
 from typing import Any
 
@@ -31,6 +34,7 @@ from latentdrive.errors import LatentDriveError
 __all__ = [
     "MAX_CONFIG_BYTES",
     "MAX_JSON_BYTES",
+    "MAX_LOG_BYTES",
     "FileFormatError",
     "atomic_write_bytes",
     "atomic_write_text",
@@ -40,6 +44,7 @@ __all__ = [
     "peak_rss_mb",
     "read_bytes",
     "read_json",
+    "read_log",
     "read_text",
     "reset_peak_rss",
 ]
@@ -48,6 +53,9 @@ __all__ = [
 MAX_CONFIG_BYTES = 1 << 20
 #: Largest JSON document read (64 MiB): a manifest of a paper-sized dataset is a few MiB.
 MAX_JSON_BYTES = 64 << 20
+#: Largest CSV training log read (metrics.csv, eval.csv: a row every few optimizer steps or
+#: every segment; a long run's is a few MiB).
+MAX_LOG_BYTES = 256 << 20
 
 TMP_SUFFIX = ".tmp"
 
@@ -190,6 +198,50 @@ def read_json(path: str | Path, *, limit: int = MAX_JSON_BYTES, what: str = "JSO
     except (ValueError, RecursionError) as exc:  # e.g. nesting or integers beyond the parser's limits
         reason = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
         raise error(f"{path}: {what} is not usable JSON ({reason})") from None
+
+
+_COUNT = re.compile(r"[0-9]{1,18}")
+
+
+def read_log(path: str | Path, *, columns: Sequence[str], key: str, limit: int = MAX_LOG_BYTES,
+             what: str = "training log", error: ErrorType = FileFormatError) -> list[dict[str, str]]:
+    """The rows of a CSV log that a run appends to (``metrics.csv``), checked.
+
+    The header must name some of ``columns`` (a log written by an older version may lack
+    the newer ones), ``key`` among them, each once; every row must have one field per
+    column and a count (an integer >= 0) under ``key``. A last line without its line
+    break is a row whose writing was cut off (a killed run): it is left out. An empty file
+    has no rows. Anything else, a binary file or one larger than ``limit`` included, is
+    one ``error`` line that names the file; a missing file raises ``FileNotFoundError``.
+    """
+    text = read_text(path, limit=limit, what=what, error=error)
+    if not text:
+        return []
+    complete = text.endswith(("\n", "\r"))
+    reader = csv.reader(io.StringIO(text, newline=""))
+    try:
+        lines = [(reader.line_num, row) for row in reader if row]
+    except csv.Error as exc:
+        raise error(f"{path}: {what} is not CSV (line {reader.line_num}: {exc})") from None
+    header, rows = (lines[0][1], lines[1:]) if lines else ([], [])
+    unknown = [c for c in header if c not in columns]
+    if unknown or key not in header or len(set(header)) != len(header):
+        shown = ",".join(header)
+        shown = shown if len(shown) <= 80 else shown[:77] + "..."
+        raise error(f"{path}: not a {what} (its columns are {shown!r}; expected {key} and others of "
+                    f"{', '.join(columns)})")
+    if rows and not complete:
+        rows.pop()  # cut off while it was written
+    k = header.index(key)
+    out = []
+    for line, row in rows:
+        if len(row) != len(header):
+            raise error(f"{path}: line {line} of the {what} has {len(row)} fields, its header {len(header)}")
+        if not _COUNT.fullmatch(row[k]):
+            shown = row[k] if len(row[k]) <= 20 else row[k][:17] + "..."
+            raise error(f"{path}: line {line} of the {what} has {key} {shown!r}, not a count")
+        out.append(dict(zip(header, row, strict=True)))
+    return out
 
 
 def confined(root: str | Path, name: object, *, source: str | Path,

@@ -19,10 +19,13 @@ import pytest
 import torch
 from safetensors.torch import save_file
 
+from latentdrive.bnn.checkpoint import save_checkpoint
+from latentdrive.bnn.train import BNNTrainConfig
 from latentdrive.cli import main
 from latentdrive.config import validate
 from latentdrive.data.collect import CollectConfig, collect
 from latentdrive.experiments.bnn import BNNStudyConfig
+from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 
 TINY = {
     "scenarios": ["merge", "highway"], "episodes": 4, "shard_size": 40,
@@ -58,6 +61,7 @@ DATASETS: dict[str, Callable[[Path], object]] = {
     "ds_passwd": _manifest_edit(_unit0("name", "/etc/passwd")),
     "ds_dotdot": _manifest_edit(_unit0("name", "../outside.npz")),
     "ds_float_episode": _manifest_edit(_unit0("first_episode", 1.5)),
+    "ds_huge_episode": _manifest_edit(_unit0("first_episode", 10**30)),
     "ds_units_not_list": _manifest_edit(lambda m: m.update(units={"a": 1})),
     "ds_truncated_manifest": lambda ds: (ds / "manifest.json").write_bytes((ds / "manifest.json").read_bytes()[:100]),
     "ds_binary_manifest": lambda ds: (ds / "manifest.json").write_bytes(bytes(range(256))),
@@ -68,6 +72,8 @@ DATASETS: dict[str, Callable[[Path], object]] = {
 def ws(tmp_path_factory: pytest.TempPathFactory) -> Path:
     w = tmp_path_factory.mktemp("bad-input")
     collect(validate(CollectConfig, TINY), w / "ds", progress=False)
+    # One episode per scenario: none to hold out.
+    collect(validate(CollectConfig, {**TINY, "episodes": 1}), w / "ds_one_episode", progress=False)
     for name, damage in DATASETS.items():
         shutil.copytree(w / "ds", w / name)
         damage(w / name)
@@ -114,6 +120,14 @@ def ws(tmp_path_factory: pytest.TempPathFactory) -> Path:
         (w / name).mkdir()
         (w / name / "checkpoint.safetensors").write_bytes(data)
         (w / name / "split.json").write_text('{"train_episodes": [], "val_episodes": []}\n')
+    # A BNN run that train-bnn's defaults resume, whose training log is damaged.
+    model_cfg = BottleneckConfig(input_shape=(2, 16, 32), latent_dim=64, channels=(16, 32))
+    train_cfg = validate(BNNTrainConfig, {"lambda_distance": 0.0, "seed": 0, "foreground_weight": 1.0})
+    net = BottleneckNetwork(model_cfg)
+    save_checkpoint(w / "bnn_bad_log" / "checkpoint.safetensors", net, torch.optim.AdamW(net.parameters()),
+                    step=0, epoch=1, config={"train": train_cfg.model_dump(mode="json"),
+                                             "model": model_cfg.model_dump(mode="json")})
+    (w / "bnn_bad_log" / "metrics.csv").write_text("kind,step\nstep,abc\n")
     pol = {"kind": "policy", "train": {"mode": "raw", "scenarios": ["merge"]}, "encoder": None}
     (w / "pol_foreign").mkdir()
     (w / "pol_foreign" / "config.json").write_text(json.dumps(pol))
@@ -143,11 +157,15 @@ CASES = [
     ("truncated-manifest", "train-bnn {w}/ds_truncated_manifest {w}/new_run", "not valid JSON"),
     ("binary-manifest", "train-bnn {w}/ds_binary_manifest {w}/new_run", "not UTF-8"),
     ("dataset-is-a-file", "train-bnn {w}/a_file {w}/new_run", "manifest"),
+    ("unit-huge-episode", "train-bnn {w}/ds_huge_episode {w}/new_run", "first_episode must be an integer >= 0 and < 2**62"),
     ("val-fraction-out-of-range", "train-bnn {w}/ds {w}/new_run --val-fraction 1.5", "--val-fraction"),
+    ("val-fraction-zero", "train-bnn {w}/ds {w}/new_run --val-fraction 0", "--val-fraction must be in (0, 1)"),
+    ("nothing-to-hold-out", "train-bnn {w}/ds_one_episode {w}/new_run", "no validation episodes at val_fraction 0.15"),
     # Runs that hold an unusable checkpoint: refused before split.json is rewritten.
     ("resume-garbage-checkpoint", "train-bnn {w}/ds {w}/run_garbage --resume", "not a safetensors file"),
     ("resume-huge-header", "train-bnn {w}/ds {w}/run_huge_header --resume", "bad header length"),
     ("existing-run-without-resume", "train-bnn {w}/ds {w}/run_garbage", "exists: resume it"),
+    ("resume-damaged-log", "train-bnn {w}/ds {w}/bnn_bad_log --resume", "step 'abc', not a count"),
     # Collect: config files that are folders, binary, too big, too deep, not a mapping.
     ("config-is-a-folder", "collect {w}/new_ds --config {w}/folder.yaml", "is a folder"),
     ("config-is-binary", "collect {w}/new_ds --config {w}/bin.yaml", "not UTF-8"),

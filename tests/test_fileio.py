@@ -6,6 +6,7 @@ from __future__ import annotations
 import ast
 import functools
 import os
+import re
 import stat
 from pathlib import Path
 
@@ -23,6 +24,7 @@ from latentdrive.fileio import (
     is_temp_file,
     read_bytes,
     read_json,
+    read_log,
     read_text,
 )
 
@@ -129,6 +131,55 @@ def test_callers_choose_the_error_type(tmp_path: Path) -> None:
     path.write_bytes(b"\xff")
     with pytest.raises(Mine):
         read_json(path, error=Mine)
+
+
+COLUMNS = ("step", "loss", "lr")
+
+
+def test_a_log_reads_as_rows_with_a_count_under_its_key(tmp_path: Path) -> None:
+    path = tmp_path / "metrics.csv"
+    path.write_bytes(b"step,loss,lr\r\n1,0.5,0.1\r\n\r\n2,nan,\r\n")
+    assert read_log(path, columns=COLUMNS, key="step") == [
+        {"step": "1", "loss": "0.5", "lr": "0.1"}, {"step": "2", "loss": "nan", "lr": ""}]
+    # An older version's log, without the newer columns, in another order.
+    path.write_text("loss,step\n0.5,1\n")
+    assert read_log(path, columns=COLUMNS, key="step") == [{"loss": "0.5", "step": "1"}]
+    # A last row cut off while a killed run wrote it is left out; an empty log has no rows.
+    path.write_text("step,loss,lr\n1,0.5,0.1\n2,0.")
+    assert read_log(path, columns=COLUMNS, key="step") == [{"step": "1", "loss": "0.5", "lr": "0.1"}]
+    path.write_text("")
+    assert read_log(path, columns=COLUMNS, key="step") == []
+    with pytest.raises(FileNotFoundError):
+        read_log(tmp_path / "missing.csv", columns=COLUMNS, key="step")
+
+
+@pytest.mark.parametrize(("content", "needle"), [
+    (bytes(range(256)) * 4, "not UTF-8"),
+    (b"step,loss\n1," + b"9" * 200_000 + b"\n", "not CSV (line 2: field larger than field limit"),
+    (b"a,b,c\n1,2,3\n", "not a metrics log (its columns are 'a,b,c'"),
+    (b"loss,lr\n1,2\n", "not a metrics log"),
+    (b"step,step\n1,2\n", "not a metrics log"),
+    (b"\n\n", "not a metrics log"),
+    (b"kind,step\nstep,abc\n", "line 2 of the metrics log has step 'abc', not a count"),
+    (b"step,loss\n-1,2\n", "has step '-1', not a count"),
+    (b"step,loss\n1\n2,3\n", "line 2 of the metrics log has 1 fields, its header 2"),
+    (b"step,loss\n1,2,3\n", "has 3 fields"),
+])
+def test_a_damaged_log_is_one_line(tmp_path: Path, content: bytes, needle: str) -> None:
+    path = tmp_path / "metrics.csv"
+    path.write_bytes(content)
+    with pytest.raises(FileFormatError, match=re.escape(needle)) as exc:
+        read_log(path, columns=(*COLUMNS, "kind"), key="step", what="metrics log")
+    _one_line_naming(exc, path)
+
+
+def test_a_log_is_read_within_its_bound(tmp_path: Path) -> None:
+    path = tmp_path / "metrics.csv"
+    with path.open("wb") as f:  # sparse: nothing of it is read
+        f.truncate(fileio.MAX_LOG_BYTES + 1)
+    with pytest.raises(FileFormatError, match="larger than 256 MiB") as exc:
+        read_log(path, columns=COLUMNS, key="step")
+    _one_line_naming(exc, path)
 
 
 # ---------------------------------------------------------------------------------------

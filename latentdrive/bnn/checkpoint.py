@@ -50,6 +50,7 @@ __all__ = [
     "load_checkpoint",
     "read_checkpoint",
     "save_checkpoint",
+    "tensors_digest",
 ]
 
 FORMAT = "latentdrive.checkpoint"
@@ -121,6 +122,14 @@ def _digest(tensors: Mapping[str, torch.Tensor], state: str | None) -> str:
         h.update(b"\x00state|" + state.encode("utf-8"))
     return h.hexdigest()
 
+
+def tensors_digest(tensors: Mapping[str, torch.Tensor]) -> str:
+    """SHA-256 of named tensors (names, dtypes, shapes, bytes), as a checkpoint digests its own.
+
+    For a file kept beside a checkpoint (a policy run's replay): the checkpoint records the
+    digest in its state, which its own digest covers, and the reader compares.
+    """
+    return _digest(tensors, None)
 
 
 # ---------------------------------------------------------------------------------------

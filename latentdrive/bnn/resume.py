@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Any
 
 from latentdrive.bnn.checkpoint import CheckpointError, read_checkpoint
+from latentdrive.bnn.runlog import read_metrics
 from latentdrive.config import Config
 from latentdrive.models.bottleneck import BottleneckConfig
 
@@ -59,17 +60,21 @@ def check_resumable(
 
 
 def check_run_dir(run_dir: str | Path, cfg: Config, model_cfg: BottleneckConfig,
-                  resume: bool) -> None:
+                  resume: bool) -> list[dict[str, str]] | None:
     """Raise what :func:`train_bnn` would refuse in ``run_dir``, writing nothing.
+
+    Returns the rows of the run's metrics.csv when the run resumes from a checkpoint
+    (see :func:`~latentdrive.bnn.runlog.read_metrics`), None when it starts afresh.
 
     A run directory holding a checkpoint is refused without ``resume``, and with it when
     the checkpoint is unreadable or was made with another model config or other training
-    settings (see :func:`train_bnn`). Callers that write files of their own into the run
+    settings (see :func:`train_bnn`), or when the run's metrics.csv, which the resumed run
+    rewrites, is damaged. Callers that write files of their own into the run
     directory check first, so that a refused run leaves them as they were.
     """
     ckpt = Path(run_dir) / CHECKPOINT_NAME
     if not ckpt.exists():
-        return
+        return None
     if not resume:
         raise CheckpointError(
             f"{ckpt} exists: resume it (resume=True, --resume) or choose a new run directory"
@@ -78,3 +83,4 @@ def check_run_dir(run_dir: str | Path, cfg: Config, model_cfg: BottleneckConfig,
     if not isinstance(saved, dict):
         raise CheckpointError(f"{ckpt}: not a BNN checkpoint (no saved configs)")
     check_resumable(ckpt, saved, cfg, model_cfg)
+    return read_metrics(Path(run_dir))

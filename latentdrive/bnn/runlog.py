@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 
 from latentdrive.bnn.evaluate import VAL_KEYS
-from latentdrive.fileio import atomic_write_text
+from latentdrive.fileio import atomic_write_text, read_log
 
-__all__ = ["METRICS_NAME", "METRIC_COLUMNS", "Meter", "MetricsLog", "peak_rss_mb"]
+__all__ = ["METRICS_NAME", "METRIC_COLUMNS", "Meter", "MetricsLog", "peak_rss_mb", "read_metrics"]
 
 METRICS_NAME = "metrics.csv"
 METRIC_COLUMNS = (
@@ -53,25 +53,34 @@ class Meter:
         return self.samples / max(self.seconds, 1e-9)
 
 
-class MetricsLog:
-    """metrics.csv plus TensorBoard scalars."""
+def read_metrics(run_dir: Path) -> list[dict[str, str]]:
+    """The rows of a run's metrics.csv, checked (none when it is missing).
 
-    def __init__(self, run_dir: Path, resume_step: int | None) -> None:
+    A resumed run reads them before it writes anything, so that a damaged log is one
+    line naming it and the run folder is left as it was.
+    """
+    try:
+        return read_log(run_dir / METRICS_NAME, columns=METRIC_COLUMNS, key="step", what="training log")
+    except FileNotFoundError:
+        return []
+
+
+class MetricsLog:
+    """metrics.csv plus TensorBoard scalars.
+
+    A resumed run gives ``resume_step``, its checkpoint's step, and ``rows``, its log as
+    :func:`read_metrics` read it: the rows up to that step are kept, the later ones
+    dropped (those steps are about to be redone). Otherwise the log starts empty.
+    """
+
+    def __init__(self, run_dir: Path, resume_step: int | None, rows: list[dict[str, str]] | None = None) -> None:
         self.path = run_dir / METRICS_NAME
-        if resume_step is not None and self.path.exists():
-            # Drop rows logged after the checkpoint: those steps are about to be redone.
-            with self.path.open(newline="") as f:
-                rows = [
-                    r for r in csv.DictReader(f)
-                    if r.get("step", "") and int(r["step"]) <= resume_step
-                ]
-            buf = io.StringIO()
-            w = csv.DictWriter(buf, fieldnames=METRIC_COLUMNS, extrasaction="ignore")
-            w.writeheader()
-            w.writerows(rows)
-            atomic_write_text(self.path, buf.getvalue())
-        else:
-            atomic_write_text(self.path, ",".join(METRIC_COLUMNS) + "\n")
+        kept = [r for r in rows or [] if resume_step is not None and int(r["step"]) <= resume_step]
+        buf = io.StringIO()
+        w = csv.DictWriter(buf, fieldnames=METRIC_COLUMNS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(kept)
+        atomic_write_text(self.path, buf.getvalue())
         self._file = self.path.open("a", newline="")
         self._csv = csv.DictWriter(self._file, fieldnames=METRIC_COLUMNS)
         from torch.utils.tensorboard import SummaryWriter

@@ -226,7 +226,8 @@ def _train(
     progress: bool,
 ) -> dict[str, float]:
     ckpt = run / CHECKPOINT_NAME
-    check_run_dir(run, cfg, model_cfg, resume)
+    # The metrics logged so far are read (and checked) here, before anything is written.
+    logged = check_run_dir(run, cfg, model_cfg, resume)
     device = resolve_device(cfg.device)
     say: Callable[[str], None] = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
 
@@ -265,7 +266,7 @@ def _train(
             "train_hash": config_hash(cfg),
         }
         atomic_write_text(run / CONFIG_NAME, json.dumps(configs, indent=2, sort_keys=True) + "\n")
-        log = MetricsLog(run, step if resumed else None)
+        log = MetricsLog(run, step if resumed else None, logged)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
 

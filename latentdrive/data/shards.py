@@ -215,10 +215,18 @@ def read_manifest(root: Path) -> dict[str, Any]:
     return manifest
 
 
+#: Bound (exclusive) of every count and episode id in a manifest: ids and counts are int64
+#: arrays once read, and a first episode id plus an episode count must stay one.
+MAX_COUNT = 2**62
+
+
 def _count(value: Any, what: str, low: int = 0) -> int:
-    """``value`` when it is an integer >= ``low`` (JSON numbers such as 2.5 or true are not)."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ValueError(f"{what} must be an integer >= {low}, got {value!r}")
+    """``value`` when it is an integer in ``[low, MAX_COUNT)`` (JSON numbers such as 2.5 or
+    true are not)."""
+    if isinstance(value, bool) or not isinstance(value, int) or not low <= value < MAX_COUNT:
+        shown = repr(value)
+        shown = shown if len(shown) <= 40 else shown[:37] + "..."
+        raise ValueError(f"{what} must be an integer >= {low} and < 2**62, got {shown}")
     return value
 
 

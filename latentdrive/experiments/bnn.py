@@ -126,8 +126,15 @@ def train_on_dataset(
     The split (by episode) depends only on ``train_cfg.seed`` and is saved to
     ``run_dir/split.json``.
     """
+    if not 0.0 < val_fraction < 1.0:
+        raise ConfigError(f"val_fraction must be in (0, 1): training validates on the held-out episodes, "
+                          f"got {val_fraction}")
     ds = ShardDataset(dataset_dir)
     train_ids, val_ids = _split(ds, val_fraction, train_cfg.seed)
+    if not len(train_ids) or not len(val_ids):
+        side = "training" if not len(train_ids) else "validation"
+        raise ConfigError(f"{dataset_dir}: no {side} episodes at val_fraction {val_fraction} "
+                          f"({len(ds.episode_ids)} episodes); collect more episodes or change the fraction")
     model_cfg = _model_config(latent_dim, channels, model, ds.sample_shape)
     plain = ds.batches_fn(train_cfg.batch_size, train_ids, seed=train_cfg.seed, mixed=False)
     mixed = ds.batches_fn(train_cfg.batch_size, train_ids, seed=train_cfg.seed, mixed=True)

@@ -73,13 +73,15 @@ class LatentStore:
         return self.data[ids % self.capacity]
 
     def state(self) -> dict[str, np.ndarray]:
-        return {"data": self.data, "added": np.array([self.added], dtype=np.int64)}
+        """The filled slots only (see :func:`_check`)."""
+        n = min(self.added, self.capacity)
+        return {"data": self.data[:n], "added": np.array([self.added], dtype=np.int64)}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
-        if arrays["data"].shape != self.data.shape:
-            raise ValueError(f"stored latents have shape {arrays['data'].shape}, expected {self.data.shape}")
-        self.data[...] = arrays["data"]
-        self.added = int(arrays["added"][0])
+        added = _added(arrays)
+        _check(arrays["data"], self.data, added, "stored latents")
+        _restore(self.data, arrays["data"], self.added, added, 0)
+        self.added = added
 
 
 class FrameStore:
@@ -121,14 +123,17 @@ class FrameStore:
         return dequantize(frames.transpose(0, 2, 1, 3, 4))
 
     def state(self) -> dict[str, np.ndarray]:
-        return {"data": self.data, "prev": self.prev, "added": np.array([self.added], dtype=np.int64)}
+        """The filled slots only (see :func:`_check`)."""
+        n = min(self.added, self.capacity)
+        return {"data": self.data[:n], "prev": self.prev[:n], "added": np.array([self.added], dtype=np.int64)}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
-        if arrays["data"].shape != self.data.shape:
-            raise ValueError(f"stored frames have shape {arrays['data'].shape}, expected {self.data.shape}")
-        self.data[...] = arrays["data"]
-        self.prev[...] = arrays["prev"]
-        self.added = int(arrays["added"][0])
+        added = _added(arrays)
+        _check(arrays["data"], self.data, added, "stored frames")
+        _check(arrays["prev"], self.prev, added, "frame links")
+        _restore(self.data, arrays["data"], self.added, added, 0)
+        _restore(self.prev, arrays["prev"], self.added, added, -1)
+        self.added = added
 
 
 class Replay:
@@ -180,18 +185,63 @@ class Replay:
             torch.from_numpy((~self.terminated[idx]).astype(np.float32)).to(device),
         )
 
+    _ARRAYS = ("obs_id", "next_id", "action", "reward", "terminated")
+
     def state(self) -> dict[str, np.ndarray]:
-        """Every array needed to continue exactly (for checkpoints)."""
-        own: dict[str, np.ndarray] = {"obs_id": self.obs_id, "next_id": self.next_id, "action": self.action, "reward": self.reward,
-               "terminated": self.terminated, "added": np.array([self.added], dtype=np.int64)}
+        """Every array needed to continue exactly (for checkpoints): the filled slots only,
+        so that a short run's replay takes the space of its transitions, not of its capacity."""
+        n = len(self)
+        own: dict[str, np.ndarray] = {name: getattr(self, name)[:n] for name in self._ARRAYS}
+        own["added"] = np.array([self.added], dtype=np.int64)
         return {**{f"replay/{k}": v for k, v in own.items()},
                 **{f"store/{k}": v for k, v in self.store.state().items()}}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        """Restore :meth:`state` (or the whole arrays, as older checkpoints hold them).
+
+        Raises ``KeyError`` or ``ValueError`` when ``arrays`` do not fit this replay;
+        nothing is changed then.
+        """
         own = {k.removeprefix("replay/"): v for k, v in arrays.items() if k.startswith("replay/")}
-        if own["obs_id"].shape != self.obs_id.shape:
-            raise ValueError(f"replay capacity {own['obs_id'].shape[0]}, expected {self.capacity}")
-        self.store.load_state({k.removeprefix("store/"): v for k, v in arrays.items() if k.startswith("store/")})
-        for name in ("obs_id", "next_id", "action", "reward", "terminated"):
-            getattr(self, name)[...] = own[name]
-        self.added = int(own["added"][0])
+        added = _added(own)
+        for name in self._ARRAYS:
+            _check(own[name], getattr(self, name), added, f"replay {name}")
+        store = {k.removeprefix("store/"): v for k, v in arrays.items() if k.startswith("store/")}
+        # The store checks its arrays before it changes anything; the replay's are checked.
+        self.store.load_state(store)
+        for name in self._ARRAYS:
+            _restore(getattr(self, name), own[name], self.added, added, 0)
+        self.added = added
+
+
+def _added(arrays: dict[str, np.ndarray]) -> int:
+    """The ``added`` counter of saved arrays."""
+    a = arrays["added"]
+    if a.shape != (1,) or a.dtype.kind not in "iu" or int(a[0]) < 0:
+        raise ValueError(f"'added' is {a.dtype} {a.shape}, expected one count")
+    return int(a[0])
+
+
+def _check(saved: np.ndarray, mine: np.ndarray, added: int, what: str) -> None:
+    """Raise unless ``saved`` can restore the ring ``mine`` after ``added`` items.
+
+    A ring saves only its filled slots, the first ``min(added, capacity)``: slot
+    ``id % capacity`` of every id below ``added``. Older checkpoints saved all ``capacity``.
+    """
+    capacity = mine.shape[0]
+    n = saved.shape[0] if saved.ndim else -1
+    if saved.dtype != mine.dtype or saved.shape[1:] != mine.shape[1:] or n not in (min(added, capacity), capacity):
+        want = (min(added, capacity), *mine.shape[1:])
+        raise ValueError(f"{what} are {saved.dtype} {saved.shape}, expected {mine.dtype} {want}")
+
+
+def _restore(mine: np.ndarray, saved: np.ndarray, added_before: int, added: int, blank: int) -> None:
+    """Copy the filled slots of a checked ``saved`` into ``mine``; slots that were filled
+    before and are not now get ``blank``, the value a new ring holds. Slots beyond both
+    were never written, so a short run's replay restores without touching the rest of
+    its (large, lazily allocated) arrays."""
+    capacity = mine.shape[0]
+    n, before = min(added, capacity), min(added_before, capacity)
+    mine[:n] = saved[:n]
+    if before > n:
+        mine[n:before] = blank

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import copy
 import csv
+import io
 import json
 import re
 import time
@@ -23,15 +24,20 @@ from typing import Any
 
 import numpy as np
 import torch
-from safetensors.numpy import load_file as np_load_file
 from safetensors.numpy import save as np_save
+from safetensors.torch import load_file as st_load_file
 
-from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from latentdrive.bnn.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    save_checkpoint,
+    tensors_digest,
+)
 from latentdrive.config import ConfigError, config_hash
 from latentdrive.errors import first_line
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
-from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined
+from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined, read_log
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
@@ -159,13 +165,16 @@ class Learner:
         arrays = {k: np.ascontiguousarray(v) for k, v in self.replay.state().items()}
         # The replay first, under a new name; then the checkpoint that names it (atomic);
         # only then are older replays removed. A kill anywhere leaves a consistent pair.
+        # The checkpoint keeps the replay's digest: a damaged replay is refused on
+        # resumption rather than silently training on other transitions.
         name = f"replay-{segment}.safetensors"
         atomic_write_bytes(run_dir / name, np_save(arrays, metadata={"replay_added": str(self.replay.added)}))
         save_checkpoint(
             run_dir / CHECKPOINT, self.net, self.optimizer, step=self.updates, epoch=segment,
             config=self.cfg.model_dump(mode="json"), numpy_generator=self.rng,
             extra={"transitions": self.transitions, "updates": self.updates, "episodes": self.episodes,
-                   "segment": segment, "replay_added": self.replay.added, "replay": name},
+                   "segment": segment, "replay_added": self.replay.added, "replay": name,
+                   "replay_digest": tensors_digest({k: torch.from_numpy(v) for k, v in arrays.items()})},
             extra_tensors={f"target/{k}": v for k, v in self.target.state_dict().items()},
         )
         for old in run_dir.iterdir():
@@ -200,16 +209,22 @@ class Learner:
         if not (REPLAY_PATTERN.fullmatch(str(name)) or name == "replay.safetensors"):
             raise CheckpointError(f"{run_dir / CHECKPOINT}: names no valid replay file ({name!r})")
         try:
-            arrays = np_load_file(str(path))
-            self.replay.load_state(arrays)
+            tensors = st_load_file(str(path))
         except FileNotFoundError:
             raise CheckpointError(f"{path}: missing; the run cannot resume without its replay") from None
         except Exception as exc:  # the safetensors parser raises its own error types
             raise CheckpointError(f"{path}: unusable replay ({first_line(exc)})") from None
+        # Checkpoints written before replays were digested have none to compare.
+        digest = info.extra.get("replay_digest")
+        if digest is not None and tensors_digest(tensors) != digest:
+            raise CheckpointError(f"{path}: corrupt replay (checksum mismatch with {CHECKPOINT})")
+        try:
+            self.replay.load_state({k: t.numpy() for k, t in tensors.items()})
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"{path}: unusable replay ({first_line(exc)})") from None
         if self.replay.added != replay_added:
             raise CheckpointError(f"{path}: replay does not belong to the checkpoint (written by another save)")
         return segment + 1
-
 
 
 def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]:
@@ -265,20 +280,36 @@ def _same_encoder(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> boo
     return all(k in b and torch.equal(a[k], b[k]) for k in keys)
 
 
-class _Log:
-    """metrics.csv, eval.csv and TensorBoard scalars; rows past a resumed checkpoint are dropped."""
+_LOGS = {METRICS: ("training log", _METRIC_COLUMNS), EVALS: ("evaluation log", _EVAL_COLUMNS)}
 
-    def __init__(self, run_dir: Path, resume_at: int | None) -> None:
+
+def _read_logs(run_dir: Path) -> dict[str, list[dict[str, str]]]:
+    """The rows of a run's metrics.csv and eval.csv, checked before anything is written."""
+    logs: dict[str, list[dict[str, str]]] = {}
+    for name, (what, cols) in _LOGS.items():
+        try:
+            logs[name] = read_log(run_dir / name, columns=cols, key="transitions", what=what)
+        except FileNotFoundError:
+            logs[name] = []
+    return logs
+
+
+class _Log:
+    """metrics.csv, eval.csv and TensorBoard scalars.
+
+    ``kept`` holds the rows (of :func:`_read_logs`) that a resumed run keeps, those up to
+    its checkpoint; ``resume_at`` is that checkpoint's transitions (None for a new run).
+    """
+
+    def __init__(self, run_dir: Path, kept: dict[str, list[dict[str, str]]], resume_at: int | None) -> None:
         self.files = {}
-        for name, cols in ((METRICS, _METRIC_COLUMNS), (EVALS, _EVAL_COLUMNS)):
+        for name, (_, cols) in _LOGS.items():
             path = run_dir / name
-            rows: list[dict[str, str]] = []
-            if resume_at is not None and path.exists():
-                with path.open(newline="") as f:
-                    rows = [r for r in csv.DictReader(f) if r.get("transitions", "").isdigit()
-                            and int(r["transitions"]) <= resume_at]
-            text = ",".join(cols) + "\n" + "".join(",".join(r.get(c, "") for c in cols) + "\n" for r in rows)
-            atomic_write_text(path, text)
+            buf = io.StringIO()
+            w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
+            w.writeheader()
+            w.writerows(kept.get(name, []))
+            atomic_write_text(path, buf.getvalue())
             fh = path.open("a", newline="")
             self.files[name] = (fh, csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore"))
         from torch.utils.tensorboard import SummaryWriter
@@ -353,11 +384,14 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
         vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend,
                        observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
         learner = Learner(cfg, net, device, cfg.envs * vec.n_av)
+        # Everything a resumption reads is checked before anything is written.
+        logs = _read_logs(root) if resume else {}
         segment = learner.load(root) if resume else 0
+        kept = {name: [r for r in rows if int(r["transitions"]) <= learner.transitions] for name, rows in logs.items()}
         _write_config(root, cfg, net, enc)
         if not resume:
             say(f"{cfg.mode}: {net.parameter_count()} parameters")
-        log = _Log(root, learner.transitions if resume else None)
+        log = _Log(root, kept, learner.transitions if resume else None)
         try:
             return _run(cfg, root, net, learner, vec, segment, device, log, progress)
         finally:

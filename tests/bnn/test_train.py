@@ -6,6 +6,7 @@ import csv
 import itertools
 import json
 import math
+import re
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from latentdrive.bnn.losses import (
 from latentdrive.bnn.resume import check_resumable
 from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
 from latentdrive.config import ConfigError, validate
+from latentdrive.fileio import FileFormatError
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
 from latentdrive.runtime import resolve_device
 
@@ -288,6 +290,45 @@ def test_run_dir_guards(data: dict[str, np.ndarray], tmp_path: Path) -> None:
     assert str(exc.value).startswith(str(run / "checkpoint.safetensors"))
     with pytest.raises(CheckpointError, match=r"\(lr \(0.003 → 0.0001\)\)"):
         train_bnn(cfg.replace(lr=1e-4), MODEL, train_fn, None, run, resume=True, progress=False)
+
+
+def _files(root: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(root)): p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+@pytest.mark.parametrize(("content", "needle"), [
+    (b"kind,step\nstep,abc\n", "line 2 of the training log has step 'abc', not a count"),
+    (bytes(range(256)) * 4, "not UTF-8"),
+    (b"a,b,c\n1,2,3\n", "not a training log"),
+])
+def test_a_damaged_metrics_log_stops_a_resumption_before_anything_is_written(
+    data: dict[str, np.ndarray], tmp_path: Path, content: bytes, needle: str
+) -> None:
+    train_fn, _ = _fns(data, 32, 16, stratify_from=1)
+    run = tmp_path / "run"
+    cfg = _small_cfg(mixed_epochs=0)
+    train_bnn(cfg, MODEL, train_fn, None, run, progress=False)
+    (run / "metrics.csv").write_bytes(content)
+    before = _files(run)
+    with pytest.raises(FileFormatError, match=re.escape(needle)) as exc:
+        train_bnn(cfg.replace(mixed_epochs=1), MODEL, train_fn, None, run, resume=True, progress=False)
+    msg = str(exc.value)
+    assert msg.startswith(str(run / "metrics.csv")) and "\n" not in msg, msg
+    assert _files(run) == before  # config.json and the log as they were
+
+
+def test_a_resumption_keeps_the_rows_of_an_older_log(data: dict[str, np.ndarray], tmp_path: Path) -> None:
+    # A log written before the vehicle metrics existed, cut off in its last row by a kill.
+    train_fn, _ = _fns(data, 32, 16, stratify_from=1)
+    run = tmp_path / "run"
+    cfg = _small_cfg(mixed_epochs=0)
+    train_bnn(cfg, MODEL, train_fn, None, run, progress=False)
+    (run / "metrics.csv").write_text("kind,step,loss,val_loss\nstep,2,0.5,\nepoch,2,0.4,0.3\nstep,4,0.")
+    train_bnn(cfg.replace(mixed_epochs=1), MODEL, train_fn, None, run, resume=True, progress=False)
+    rows = _rows(run)
+    assert [(r["kind"], r["step"], r["loss"], r["val_loss"]) for r in rows[:2]] == [
+        ("step", "2", "0.5", ""), ("epoch", "2", "0.4", "0.3")]
+    assert [r["step"] for r in rows[2:]] == ["4", "4"]
 
 
 def test_a_checkpoint_from_before_a_field_existed_resumes(data: dict[str, np.ndarray], tmp_path: Path) -> None:

@@ -3,6 +3,7 @@ from __future__ import annotations
 import hashlib
 import io
 import json
+import re
 from collections import Counter
 from pathlib import Path
 
@@ -78,6 +79,27 @@ def test_missing_or_corrupt_manifest(dataset_copy: Path, tmp_path: Path) -> None
     (dataset_copy / MANIFEST).write_text(json.dumps({"format": "something else"}))
     with pytest.raises(DatasetError, match="not a latentdrive dataset manifest"):
         ShardDataset(dataset_copy)
+
+
+@pytest.mark.parametrize(("unit_key", "shard_key", "value", "needle"), [
+    ("first_episode", None, 10**30, "first_episode must be an integer >= 0 and < 2**62, got 1000000000000000000000000000000"),
+    ("first_episode", None, 2**62, "first_episode must be an integer >= 0 and < 2**62"),
+    ("episodes", None, 10**30, "episodes must be an integer >= 1 and < 2**62"),
+    (None, "episode_samples", 10**30, "an episode's samples must be an integer >= 0 and < 2**62"),
+])
+def test_counts_beyond_int64_are_one_line(dataset_copy: Path, unit_key: str | None, shard_key: str | None,
+                                           value: object, needle: str) -> None:
+    # Regression: a huge first episode id was an OverflowError from numpy, not a DatasetError.
+    m = json.loads((dataset_copy / MANIFEST).read_text())
+    unit = m["units"][0]
+    if unit_key is not None:
+        unit[unit_key] = value
+    else:
+        m["shards"][unit["name"]][shard_key][0] = value  # the first episode's count
+    (dataset_copy / MANIFEST).write_text(json.dumps(m))
+    with pytest.raises(DatasetError, match=re.escape(needle)) as exc:
+        ShardDataset(dataset_copy)
+    assert str(exc.value).startswith(str(dataset_copy / MANIFEST)) and "\n" not in str(exc.value)
 
 
 def test_missing_shard_is_named(dataset_copy: Path) -> None:

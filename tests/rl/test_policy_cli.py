@@ -9,6 +9,7 @@ from latentdrive.bnn.checkpoint import save_checkpoint
 from latentdrive.cli import main
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.rl.train import train_policy
+from latentdrive.runlock import LOCK_NAME
 
 from .conftest import TINY
 
@@ -97,6 +98,37 @@ def test_a_corrupt_checkpoint_is_refused(tmp_path, capsys, raw_run):
     data[-10:] = b"\x00" * 10
     (bad / "checkpoint.safetensors").write_bytes(bytes(data))
     _fails(capsys, ["evaluate", str(bad), "--episodes", "2", "--policy", "none"], "corrupt checkpoint", tmp_path)
+
+
+@pytest.mark.parametrize(("name", "content", "needle"), [
+    ("eval.csv", bytes(range(256)) * 4, "eval.csv: evaluation log is not UTF-8"),
+    ("metrics.csv", bytes(range(256)) * 4, "metrics.csv: training log is not UTF-8"),
+    ("metrics.csv", b"step,loss\n1,2\n", "metrics.csv: not a training log"),
+    ("eval.csv", b"transitions,scenario\n100,merge,extra\n", "eval.csv: line 2 of the evaluation log has 3 fields"),
+    ("metrics.csv", b"transitions,updates\nabc,1\n", "has transitions 'abc', not a count"),
+])
+def test_resuming_with_a_damaged_log_changes_nothing(tmp_path, capsys, raw_run, name, content, needle):
+    run = tmp_path / "run"
+    shutil.copytree(raw_run, run)
+    (run / name).write_bytes(content)
+    _fails(capsys, ["train-policy", str(run), "--resume", "-q"], needle, tmp_path)
+    _fails(capsys, ["train-policy", str(run), "--resume", "--steps", "200", "-q"], needle, tmp_path)
+
+
+def test_resuming_with_a_huge_log_does_not_read_it(tmp_path, capsys, raw_run):
+    run = tmp_path / "run"
+    shutil.copytree(raw_run, run)
+    with (run / "metrics.csv").open("wb") as f:  # sparse: takes no room
+        f.truncate((256 << 20) + 1)
+
+    def stats():  # not the bytes: holding them would take the memory the bound saves; the lock is retaken
+        return {p: (p.stat().st_ino, p.stat().st_size, p.stat().st_mtime_ns) for p in run.rglob("*") if p.name != LOCK_NAME}
+
+    before = stats()
+    assert main(["train-policy", str(run), "--resume", "-q"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "metrics.csv: training log is larger than 256 MiB" in err[0], err
+    assert stats() == before
 
 
 def test_evaluate_writes_json_and_compares(tmp_path, capsys, raw_run):

@@ -97,8 +97,65 @@ def test_raw_replay_of_100k_transitions_fits_in_2_gib():
     cfg = PolicyTrainConfig(mode="raw", dqn={"buffer_size": 100_000})
     net = build_network(cfg, None)
     replay = Replay(cfg.dqn.buffer_size, make_store(net, cfg, n_slots=16 * 2))
-    total = sum(v.nbytes for v in replay.state().values())
+    store = replay.store
+    assert isinstance(store, FrameStore)
+    arrays: list[np.ndarray] = [replay.obs_id, replay.next_id, replay.action, replay.reward, replay.terminated,
+                                store.data, store.prev]
+    total = sum(a.nbytes for a in arrays)
     assert total <= 2 * 2**30, f"{total / 2**30:.2f} GiB"
+
+
+def _filled_replay(store, n: int, seed: int = 0) -> Replay:
+    rng = np.random.default_rng(seed)
+    replay = Replay(8, store)
+    shape = (n, 4, 2, 4, 4) if isinstance(store, FrameStore) else (n, 3)
+    ids = store.add(rng.random(shape, dtype=np.float32), np.full(n, -1))
+    replay.add(ids, rng.integers(0, 5, n), rng.random(n, dtype=np.float32), ids, rng.random(n) < 0.5)
+    return replay
+
+
+def _whole_rings(replay: Replay) -> dict[str, np.ndarray]:
+    """``replay.state()`` as checkpoints saved it before they kept the filled slots only."""
+    out = replay.state()
+    for key in out:
+        owner, name = key.split("/")
+        if name != "added":
+            out[key] = getattr(replay if owner == "replay" else replay.store, name)
+    return out
+
+
+@pytest.mark.parametrize("make", [lambda: FrameStore(12, (4, 2, 4, 4)), lambda: LatentStore(12, (3,))])
+@pytest.mark.parametrize("n", [0, 5, 8, 30])
+def test_a_replay_saves_its_filled_slots_and_restores_exactly(make, n):
+    replay = _filled_replay(make(), n)
+    state = replay.state()
+    assert len(state["replay/obs_id"]) == min(n, 8) and len(state["store/data"]) == min(n, 12)
+    # Into a new replay, into one holding more, and from a whole ring as older checkpoints saved it.
+    for target, arrays in [(_filled_replay(make(), 0), state), (_filled_replay(make(), 40, seed=1), state),
+                           (_filled_replay(make(), 0), _whole_rings(replay))]:
+        target.load_state({k: v.copy() for k, v in arrays.items()})
+        assert target.added == replay.added and target.store.added == replay.store.added
+        for name in ("obs_id", "next_id", "action", "reward", "terminated"):
+            np.testing.assert_array_equal(getattr(target, name), getattr(replay, name))
+        for name in ("data", "prev"):
+            if hasattr(replay.store, name):
+                np.testing.assert_array_equal(getattr(target.store, name), getattr(replay.store, name))
+
+
+def test_a_replay_that_does_not_fit_is_refused_and_changes_nothing():
+    replay = _filled_replay(FrameStore(12, (4, 2, 4, 4)), 5)
+    target = _filled_replay(FrameStore(12, (4, 2, 4, 4)), 3, seed=1)
+    before = {k: v.copy() for k, v in target.state().items()}
+    bad: list[tuple[str, np.ndarray]] = [
+        ("replay/obs_id", np.zeros(4, np.int64)), ("replay/reward", np.zeros(5, np.float64)),
+        ("store/data", np.zeros((5, 4, 3, 3), np.uint8)), ("store/prev", np.zeros(6, np.int64)),
+        ("replay/added", np.array([-1])),
+    ]
+    for key, value in bad:
+        with pytest.raises(ValueError):
+            target.load_state({**replay.state(), key: value})
+        after = target.state()
+        assert after.keys() == before.keys() and all(np.array_equal(after[k], before[k]) for k in before)
 
 
 def test_latent_network_stores_latents():

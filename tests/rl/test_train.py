@@ -120,6 +120,54 @@ def test_each_checkpoint_names_its_own_replay_and_older_ones_go(tmp_path, tiny):
     assert [p.name for p in (tmp_path / "r").glob("replay-*.safetensors")] == ["replay-3.safetensors"]
 
 
+def _files(root):
+    return {p: p.read_bytes() for p in sorted(root.rglob("*")) if p.is_file()}
+
+
+def test_a_damaged_replay_is_refused_on_resumption(tmp_path, tiny):
+    from latentdrive.bnn.checkpoint import CheckpointError
+
+    run = tmp_path / "r"
+    train_policy(tiny(mode="raw", steps=100), run, **_quiet())
+    (replay,) = run.glob("replay-*.safetensors")
+    data = bytearray(replay.read_bytes())
+    data[-3] ^= 0x01  # one bit of its tensor data: the safetensors header still parses
+    replay.write_bytes(bytes(data))
+    before = _files(run)
+    with pytest.raises(CheckpointError, match="corrupt replay") as exc:
+        train_policy(tiny(mode="raw", steps=200), run, resume=True, **_quiet())
+    assert str(exc.value).startswith(str(replay)) and "\n" not in str(exc.value)
+    assert _files(run) == before
+
+
+class _Stop(Exception):
+    pass
+
+
+def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_path, tiny, monkeypatch):
+    # The default buffer holds 100k transitions: saved whole, a raw replay takes 400 MB
+    # at this tiny grid (1.6 GB at the default one) whatever the run's length.
+    from latentdrive.rl.train import Learner
+
+    cfg = tiny(mode="raw", steps=200, dqn={"buffer_size": 100_000})
+    train_policy(cfg, tmp_path / "whole", **_quiet())
+    save = Learner.save
+
+    def save_then_stop(self, run_dir, segment):
+        save(self, run_dir, segment)
+        raise _Stop  # as if killed after the first checkpoint
+
+    with monkeypatch.context() as m:
+        m.setattr(Learner, "save", save_then_stop)
+        with pytest.raises(_Stop):
+            train_policy(cfg, tmp_path / "r", **_quiet())
+    (replay,) = (tmp_path / "r").glob("replay-*.safetensors")
+    assert replay.stat().st_size < 2 << 20
+    train_policy(cfg, tmp_path / "r", resume=True, **_quiet())
+    whole, resumed = _model_tensors(tmp_path / "whole"), _model_tensors(tmp_path / "r")
+    assert all(np.array_equal(whole[k], resumed[k]) for k in whole)
+
+
 def test_evaluation_offsets_are_disjoint_sets():
     from latentdrive.seeds import MAX_ENVS, TRAINING_EVAL_OFFSET
 
