@@ -245,7 +245,7 @@ def run_graph(graph: Graph, out: Path, kinds: Mapping[str, StepKind], runner: Ru
                 break  # what is left waits on failed steps
             for handle in runner.wait(list(running)):
                 n = running.pop(handle)
-                bar.update(graph.steps[n].cost)
+                bar.update(min(graph.steps[n].cost, max(0.0, bar.total - bar.n)))  # float sums may overshoot
                 try:
                     records[n] = runner.result(handle)
                     done_count += 1

@@ -42,14 +42,12 @@ from latentdrive.actions import N_ACTIONS
 from latentdrive.config import Config
 from latentdrive.models.bottleneck import BottleneckNetwork
 
-__all__ = ["FEATURE_CHUNK", "LATENT_MODES", "MODES", "Mode", "QNetwork", "VFANConfig", "encode_in_chunks"]
+__all__ = ["LATENT_MODES", "MODES", "Mode", "QNetwork", "VFANConfig"]
 
 Mode = Literal["raw", "latent", "latent-random", "end-to-end"]
 MODES: tuple[str, ...] = ("raw", "latent", "latent-random", "end-to-end")
 #: Modes whose encoder is frozen: replay stores its latents, encoded once at collection.
 LATENT_MODES: tuple[str, ...] = ("latent", "latent-random")
-#: Observations per frozen-encoder call on a CPU (see :meth:`QNetwork.features`).
-FEATURE_CHUNK = 8
 
 
 class VFANConfig(Config):
@@ -103,13 +101,6 @@ class VFANBody(nn.Module):
             elif not isinstance(layer, nn.Flatten):
                 h = layer(h)
         return h
-
-
-def encode_in_chunks(encoder: BottleneckNetwork, obs: Tensor, chunk: int) -> Tensor:
-    """``encoder.encode`` of ``obs`` ``(B, 4, T, H, W)`` in near-equal chunks of at most ``chunk``."""
-    if obs.shape[0] <= chunk:
-        return encoder.encode(obs)
-    return torch.cat([encoder.encode(c) for c in obs.tensor_split(-(-obs.shape[0] // chunk))])
 
 
 class QNetwork(nn.Module):
@@ -180,19 +171,11 @@ class QNetwork(nn.Module):
 
     @torch.no_grad()
     def features(self, obs: Tensor) -> Tensor:
-        """Observations ``(B, 4, T, H, W)`` → what replay stores for them (no gradient).
-
-        On a CPU the frozen encoder takes :data:`FEATURE_CHUNK` observations at a time: a
-        vector step's whole batch spills its first layer's activations out of the cache
-        (``latentdrive bench --train`` prints the encoder's rate both ways, measured inside
-        the training loop). Chunks are of near-equal sizes, never a lone observation, which
-        a CPU computes by other kernels.
-        """
-        if self.mode not in LATENT_MODES:
-            return obs
-        assert self.encoder is not None
-        chunk = FEATURE_CHUNK if obs.device.type == "cpu" else obs.shape[0]
-        return encode_in_chunks(self.encoder, obs, chunk)
+        """Observations ``(B, 4, T, H, W)`` → what replay stores for them (no gradient)."""
+        if self.mode in LATENT_MODES:
+            assert self.encoder is not None
+            return self.encoder.encode(obs)
+        return obs
 
     def forward(self, stored: Tensor) -> Tensor:
         """Stored inputs ``(B, *stored_shape)`` → Q-values ``(B, n_actions)``."""

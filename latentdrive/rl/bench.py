@@ -7,10 +7,7 @@ For each mode it runs the real training loop (:func:`latentdrive.rl.train.learne
 - end-to-end agent-transitions/s of the whole loop once learning has started;
 - the share of that wall time spent simulating, rendering VelocityMaps (and rewards),
   encoding observations (the frozen encoder in latent modes), and learning; the rest is
-  replay writing, action selection and bookkeeping;
-- in latent modes, the frozen encoder's observations/s on one vector step's observations
-  in chunks (as :meth:`~latentdrive.models.vfan.QNetwork.features` runs it on a CPU) and as
-  one batch, the reference.
+  replay writing, action selection and bookkeeping.
 
 ``latent`` and ``latent-random`` differ only in the encoder's weights, not in cost, so
 without a BNN run the bench measures ``latent`` with an untrained encoder of the default
@@ -24,12 +21,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
-import numpy as np
-import torch
-from numpy.typing import NDArray
-
 from latentdrive.config import merge_overrides, validate
-from latentdrive.models.vfan import FEATURE_CHUNK, LATENT_MODES, QNetwork, encode_in_chunks
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import build_network, encoder_config
 from latentdrive.rl.train import Learner, learner_steps
@@ -54,9 +46,6 @@ class TrainBenchRow:
     render: float
     encode: float
     learn: float
-    #: Frozen-encoder observations/s in chunks and as one batch (latent modes).
-    encoder_obs_per_s: float | None = None
-    encoder_one_batch_obs_per_s: float | None = None
 
     @property
     def other(self) -> float:
@@ -64,22 +53,6 @@ class TrainBenchRow:
 
     def as_dict(self) -> dict[str, Any]:
         return {**asdict(self), "other": self.other}
-
-
-def _encoder_rates(net: QNetwork, obs: NDArray[np.float32], device: torch.device,
-                   repeats: int = 5) -> tuple[float, float]:
-    """Observations/s of the frozen encoder on ``obs`` in chunks of :data:`FEATURE_CHUNK`, and as one batch."""
-    assert net.encoder is not None
-    x = torch.from_numpy(obs.reshape(-1, *obs.shape[2:])).to(device)
-    rates = []
-    with torch.no_grad():
-        for chunk in (FEATURE_CHUNK, x.shape[0]):
-            encode_in_chunks(net.encoder, x, chunk)  # warm-up
-            t0 = time.perf_counter()
-            for _ in range(repeats):
-                encode_in_chunks(net.encoder, x, chunk)
-            rates.append(repeats * x.shape[0] / (time.perf_counter() - t0))
-    return rates[0], rates[1]
 
 
 def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> TrainBenchRow:
@@ -97,7 +70,7 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> Train
         enc0, learn0, tr0, vsteps = learner.cache.seconds, learner.learn_seconds, learner.transitions, 0
         t0 = time.perf_counter()
         while learner.transitions - tr0 < transitions:
-            rec = next(steps)
+            next(steps)
             vsteps += 1
         wall = time.perf_counter() - t0
         done = learner.transitions - tr0
@@ -109,11 +82,10 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> Train
         for _ in range(updates):
             learner.update_step()
         ups = updates / (time.perf_counter() - t0)
-        enc = _encoder_rates(net, rec.obs_after, device) if cfg.mode in LATENT_MODES else (None, None)
         vec.close()
     return TrainBenchRow(mode=cfg.mode, device=str(device), trainable_parameters=net.parameter_count()["trainable"],
                          updates_per_s=ups, transitions_per_s=done / wall, env_steps_per_s=vsteps * cfg.envs / wall,
-                         encoder_obs_per_s=enc[0], encoder_one_batch_obs_per_s=enc[1], **share)
+                         **share)
 
 
 def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transitions: int = 2000, updates: int = 50,
@@ -145,11 +117,6 @@ def format_train_bench(rows: list[TrainBenchRow], envs: int, threads: int) -> st
             f"{r.mode:<28}{r.device:>7}{r.trainable_parameters:>10}{r.updates_per_s:>11.1f}{r.transitions_per_s:>12.0f}"
             f"{r.env_steps_per_s:>13.0f}{r.env_steps_per_s / AUTHORS_ENV_STEPS_PER_S:>11.0f}x"
             f"{100 * r.simulate:>5.0f}%{100 * r.render:>7.0f}%{100 * r.encode:>7.0f}%{100 * r.learn:>6.0f}%{100 * r.other:>6.0f}%")
-    for r in rows:
-        if r.encoder_obs_per_s and r.encoder_one_batch_obs_per_s:
-            lines.append(f"{r.mode}: frozen encoder {r.encoder_obs_per_s:.0f} observations/s in chunks of {FEATURE_CHUNK}, "
-                         f"{r.encoder_one_batch_obs_per_s:.0f} as one batch of a vector step's observations "
-                         f"({r.encoder_obs_per_s / r.encoder_one_batch_obs_per_s:.2f}x; training on a CPU uses chunks)")
     lines.append(f"'vs authors': env steps/s over the authors' ~{AUTHORS_ENV_STEPS_PER_S:g} env steps/s per run "
                  "(4,000 episodes in ~4.5 h on a GPU node).")
     return "\n".join(lines)

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
-from latentdrive.models.vfan import MODES, QNetwork, VFANBody, VFANConfig, encode_in_chunks
+from latentdrive.models.vfan import MODES, QNetwork, VFANBody, VFANConfig
 
 OBS = (4, 4, 32, 64)
 
@@ -79,15 +79,3 @@ def test_bad_modes_and_mismatched_encoders_are_refused():
     with pytest.raises(ValueError, match="encoder takes observations"):
         QNetwork(VFANConfig(), "latent", (4, 2, 32, 64), BottleneckNetwork(BottleneckConfig()))
 
-
-@pytest.mark.parametrize("batch", [1, 8, 9, 21])
-def test_chunked_encoding_is_the_encoding_of_the_whole_batch(batch):
-    net = _net("latent-random")
-    obs = (torch.rand(batch, *OBS) < 0.1).float()
-    with torch.no_grad():
-        whole = net.encoder.encode(obs)
-    # 9 → chunks of 5 and 4, 21 → 7, 7, 7: never a lone observation.
-    chunked = encode_in_chunks(net.encoder, obs, 8)
-    torch.testing.assert_close(chunked, whole, atol=1e-6, rtol=1e-5)
-    assert chunked.shape == (batch, 3, 16)
-    torch.testing.assert_close(net.features(obs), whole, atol=1e-6, rtol=1e-5)
