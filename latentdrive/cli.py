@@ -117,7 +117,7 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         modes = args.modes.split(",") if args.modes else ["raw", "latent", "end-to-end"]
         _say(f"benchmarking training in {len(modes)} mode(s) on {', '.join(names)} ...")
         trows = bench_training(modes, names, transitions=args.steps, envs=args.batch_size, bnn=args.bnn or None,
-                               overrides=overrides, progress=_say)
+                               overrides=overrides, progress=_say, repeat=args.repeat)
         print(format_train_bench(trows, args.batch_size, int(overrides.get("threads", 1))))
         if args.json:
             _write_json(args.json, [r.as_dict() for r in trows])
@@ -291,6 +291,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "(--steps: decisions; --batch-size: envs; --set planner.KEY=VALUE)")
     s.add_argument("--modes", default="", help="with --train: comma-separated modes (default raw,latent,end-to-end)")
     s.add_argument("--bnn", default="", help="with --train: a BNN run for mode latent (default: an untrained encoder, same cost)")
+    s.add_argument("--repeat", type=positive_int, default=1,
+                   help="with --train: run each mode this many times and report the median run and the range "
+                   "(a shared machine's speed varies from run to run)")
     _add_set(s, "observation override, repeatable (--set height=64 --set resolution=1.0); with --train, train-policy overrides")
     s.set_defaults(func=_cmd_bench)
 

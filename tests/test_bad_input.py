@@ -216,6 +216,7 @@ CASES = [
     ("seed-not-a-number", "train-policy {w}/new_pol --seed x", "expected an integer, got 'x'"),
     ("validate-unknown-policy", "validate-backend --policies bogus --scenarios merge", "unknown 'bogus'"),
     ("gpu-fraction-above-one", "reproduce {w}/new_study --gpu-fraction 2", "--gpu-fraction: must be in (0, 1]"),
+    ("bench-repeat-zero", "bench --train --repeat 0", "--repeat: must be at least 1"),
     ("lambda-nan", "train-bnn {w}/ds {w}/new_run --lambda nan", "finite number"),
     ("ray-host-unknown", "reproduce {w}/new_study --preset tiny --ray no-such-host.invalid:6379", "cannot resolve host"),
 ]

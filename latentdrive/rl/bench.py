@@ -46,6 +46,11 @@ class TrainBenchRow:
     render: float
     encode: float
     learn: float
+    #: Over repeated runs of this mode: how many, and the slowest and fastest
+    #: agent-transitions/s (the row's other numbers are those of the median run).
+    runs: int = 1
+    transitions_per_s_min: float | None = None
+    transitions_per_s_max: float | None = None
 
     @property
     def other(self) -> float:
@@ -85,12 +90,16 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> Train
         vec.close()
     return TrainBenchRow(mode=cfg.mode, device=str(device), trainable_parameters=net.parameter_count()["trainable"],
                          updates_per_s=ups, transitions_per_s=done / wall, env_steps_per_s=vsteps * cfg.envs / wall,
-                         **share)
+                         simulate=share["simulate"], render=share["render"], encode=share["encode"], learn=share["learn"])
 
 
 def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transitions: int = 2000, updates: int = 50,
                    envs: int = 16, bnn: str | None = None, overrides: dict[str, Any] | None = None,
-                   progress: Callable[[str], None] | None = None) -> list[TrainBenchRow]:
+                   progress: Callable[[str], None] | None = None, repeat: int = 1) -> list[TrainBenchRow]:
+    """One row per mode; with ``repeat`` > 1 each mode runs that many times and its row is
+    the median run, with the range of agent-transitions/s beside it."""
+    if repeat < 1:
+        raise ValueError(f"repeat must be at least 1, got {repeat}")
     rows = []
     for mode in modes:
         data: dict[str, Any] = {"mode": mode, "scenarios": list(scenarios), "envs": envs, "steps": 10**9,
@@ -100,10 +109,17 @@ def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transition
             if not bnn:
                 data["mode"] = "latent-random"
         cfg = validate(PolicyTrainConfig, merge_overrides(data, overrides or {}))
-        row = _bench_mode(cfg, transitions, updates)
-        rows.append(TrainBenchRow(**{**asdict(row), "mode": mode if bnn or mode != "latent" else "latent (untrained encoder)"}))
-        if progress:
-            progress(f"  {mode}: {row.transitions_per_s:.0f} agent-transitions/s")
+        runs = []
+        for _ in range(repeat):
+            runs.append(_bench_mode(cfg, transitions, updates))
+            if progress:
+                progress(f"  {mode}: {runs[-1].transitions_per_s:.0f} agent-transitions/s")
+        rates = sorted(r.transitions_per_s for r in runs)
+        # The median run (the lower middle one for an even count) speaks for the mode.
+        row = next(r for r in runs if r.transitions_per_s == rates[(len(rates) - 1) // 2])
+        rows.append(TrainBenchRow(**{**asdict(row), "mode": mode if bnn or mode != "latent" else "latent (untrained encoder)",
+                                     "runs": repeat, "transitions_per_s_min": rates[0],
+                                     "transitions_per_s_max": rates[-1]}))
     return rows
 
 
@@ -117,6 +133,10 @@ def format_train_bench(rows: list[TrainBenchRow], envs: int, threads: int) -> st
             f"{r.mode:<28}{r.device:>7}{r.trainable_parameters:>10}{r.updates_per_s:>11.1f}{r.transitions_per_s:>12.0f}"
             f"{r.env_steps_per_s:>13.0f}{r.env_steps_per_s / AUTHORS_ENV_STEPS_PER_S:>11.0f}x"
             f"{100 * r.simulate:>5.0f}%{100 * r.render:>7.0f}%{100 * r.encode:>7.0f}%{100 * r.learn:>6.0f}%{100 * r.other:>6.0f}%")
+    for r in rows:
+        if r.runs > 1:
+            lines.append(f"{r.mode}: the median of {r.runs} runs; agent-transitions/s ranged "
+                         f"{r.transitions_per_s_min:.0f}-{r.transitions_per_s_max:.0f}")
     lines.append(f"'vs authors': env steps/s over the authors' ~{AUTHORS_ENV_STEPS_PER_S:g} env steps/s per run "
                  "(4,000 episodes in ~4.5 h on a GPU node).")
     return "\n".join(lines)

@@ -1,0 +1,24 @@
+"""`latentdrive bench --train`: the real training loop, timed per mode, repeatable."""
+
+from latentdrive.rl.bench import bench_training, format_train_bench
+
+SMALL = {"observation": {"height": 16, "width": 32, "frames": 2},
+         "dqn": {"learning_starts": 16, "batch_size": 4, "buffer_size": 200}}
+
+
+def test_a_repeated_bench_reports_its_median_run_and_range():
+    rows = bench_training(["latent"], ["merge"], transitions=24, updates=2, envs=2, overrides=SMALL, repeat=3)
+    (row,) = rows
+    assert row.mode == "latent (untrained encoder)" and row.runs == 3
+    assert row.transitions_per_s_min <= row.transitions_per_s <= row.transitions_per_s_max
+    assert row.updates_per_s > 0 and row.trainable_parameters > 0
+    shares = (row.simulate, row.render, row.encode, row.learn, row.other)
+    assert all(0 <= x <= 1 for x in shares) and row.encode > 0  # latent mode encodes
+    text = format_train_bench(rows, envs=2, threads=1)
+    assert "the median of 3 runs" in text and f"{row.transitions_per_s_min:.0f}-" in text
+
+
+def test_a_single_run_prints_no_range():
+    (row,) = bench_training(["raw"], ["merge"], transitions=24, updates=2, envs=2, overrides=SMALL)
+    assert row.runs == 1 and row.encode < 0.05  # raw mode stores observations as they are
+    assert "median" not in format_train_bench([row], envs=2, threads=1)
