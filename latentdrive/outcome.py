@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import numpy as np
@@ -82,8 +83,8 @@ def outcomes_from_json(items: object) -> list[EpisodeOutcome]:
                                episode_index=int(d["episode_index"]), seed=int(d["seed"]), steps=int(d["steps"]),
                                agent_crashed=crashed, agent_arrived=arrived, agent_return=ret,
                                mean_speed=float(d["mean_speed"]), traffic_crashed=bool(d["traffic_crashed"]))
-            if min(o.env_index, o.episode_index, o.seed, o.steps) < 0 or not o.mean_speed >= 0:
-                raise ValueError("a negative count, seed or speed")
+            if min(o.env_index, o.episode_index, o.seed, o.steps) < 0 or not math.isfinite(o.mean_speed):
+                raise ValueError("a negative count or seed, or a speed that is not a number")
             out.append(o)
         except (TypeError, ValueError) as exc:
             raise ValueError(f"outcome {i}: {exc}") from None

@@ -118,9 +118,12 @@ class PairedTest:
     ``difference`` is ``rate_a - rate_b`` with ``[lo, hi]`` its percentile-bootstrap
     interval; ``relative`` is ``1 - rate_a / rate_b``, how much less often A is true than B
     (the paper's "47% fewer" with A the bottleneck and B the baseline), with
-    ``[relative_lo, relative_hi]`` from the same kind of bootstrap (None when ``rate_b`` is
-    0). Both intervals resample episodes: they say how well these two policies were
-    measured, not how other training seeds would do. ``a_only``/``b_only`` count the discordant pairs (true under A only / B
+    ``[relative_lo, relative_hi]`` from the same kind of bootstrap (all NaN when ``rate_b``
+    is 0). A resample in which B never happens but A does has no finite reduction: when
+    such resamples reach the lower tail, ``relative_lo`` is ``-inf`` (no lower bound); one
+    in which neither happens counts as no reduction (0). Both intervals resample
+    episodes: they say how well these two policies were measured, not how other training
+    seeds would do. ``a_only``/``b_only`` count the discordant pairs (true under A only / B
     only), which alone drive ``p_value``, McNemar's exact (binomial) two-sided test of
     equal rates. A small p-value says the policies differ on *these* episodes' generating
     distribution; a large one does not show they are equal (few discordant pairs mean

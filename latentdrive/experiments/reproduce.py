@@ -8,6 +8,7 @@ report shows. ``latentdrive report OUT`` rebuilds the last three from the finish
 from __future__ import annotations
 
 import json
+import math
 import platform
 import time
 from collections.abc import Callable, Mapping
@@ -170,8 +171,8 @@ def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]
         hit = [c for c in rates if c == name or c.split(":")[0] == name]
         if not hit:
             raise ConfigError(f"--speedup {name}: no such step class measured (known: {', '.join(sorted(rates))})")
-        if not factor > 0:
-            raise ConfigError(f"--speedup {name}: the factor must be positive, got {factor:g}")
+        if not (math.isfinite(factor) and factor > 0):
+            raise ConfigError(f"--speedup {name}: the factor must be a positive finite number, got {factor:g}")
         for c in hit:
             rates[c] /= factor
     scale = (cfg.bnn.collect.episodes * len(cfg.scenarios)) / (m_cfg.bnn.collect.episodes * len(m_cfg.scenarios))

@@ -88,7 +88,7 @@ def add_reproduce_parsers(sub: Any) -> None:
     s.add_argument("--speedup", action="append", default=[], metavar="CLASS=FACTOR",
                    help="the target runs this step class (bnn, policy:raw, ...; or a whole kind: policy) FACTOR times "
                    "faster than the measuring machine, e.g. the ratio of `bench --train` agent-transitions/s there "
-                   "and here; repeatable")
+                   "and here; repeatable (a kind's factor and one of its classes' multiply)")
     s.set_defaults(func=_cmd_estimate)
 
     s = sub.add_parser("report", help="rebuild a study's results.json, report.md and figures from its finished steps")

@@ -40,11 +40,12 @@ def _p(p: float | None) -> str:
 
 
 def _relative(t: dict[str, Any]) -> str:
-    """``1 - latent / raw`` with its episode-bootstrap interval (``–`` where undefined)."""
+    """``1 - latent / raw`` with its episode-bootstrap interval (``–`` where undefined, ``-∞`` where unbounded)."""
     rel, lo, hi = t.get("relative"), t.get("relative_lo"), t.get("relative_hi")
     if rel is None:
         return "–"
-    return f"{100 * rel:+.0f}% [{_signed(lo)}, {_signed(hi)}]"
+    # rel is defined, so a missing bound is an unbounded one (-inf does not survive JSON).
+    return f"{100 * rel:+.0f}% [{'-∞' if lo is None else f'{100 * lo:+.0f}'}, {_signed(hi)}]"
 
 
 def _signed(v: float | None) -> str:

@@ -118,3 +118,9 @@ def test_relative_reduction_and_its_interval() -> None:
 def test_relative_reduction_of_a_rate_that_is_zero_is_undefined() -> None:
     t = paired_test([True, False, False], [False, False, False])
     assert math.isnan(t.relative) and t.as_dict()["relative"] is None
+
+
+def test_an_unbounded_reduction_is_minus_infinity_not_undefined() -> None:
+    # B fails once, A twice: some resamples hold A's failures and none of B's.
+    t = paired_test([True, True] + [False] * 18, [False, False, True] + [False] * 17)
+    assert t.relative == pytest.approx(1 - 2 / 1) and t.relative_lo == -math.inf and t.relative_hi <= 1
