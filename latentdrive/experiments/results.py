@@ -9,7 +9,6 @@ over seeds: seed ``k`` of one against seed ``k`` of the other).
 
 from __future__ import annotations
 
-import csv
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -31,8 +30,9 @@ from latentdrive.experiments.study import (
     policy_name,
     reference_name,
 )
-from latentdrive.fileio import MAX_JSON_BYTES, read_json, read_text
+from latentdrive.fileio import MAX_JSON_BYTES, read_json, read_log
 from latentdrive.outcome import EpisodeOutcome, outcomes_from_json
+from latentdrive.rl.train import EVAL_COLUMNS, EVALS
 
 __all__ = ["MIXED", "gather_results"]
 
@@ -166,10 +166,11 @@ class _Study:
 
 def _curve(run: Path, test: str) -> list[list[float]]:
     """``[[transitions, failure_rate], ...]`` of a policy run's periodic evaluations."""
-    path = run / "eval.csv"
-    if not path.is_file():
+    path = run / EVALS
+    try:
+        rows = read_log(path, columns=EVAL_COLUMNS, key="transitions", what="evaluation log", error=ConfigError)
+    except FileNotFoundError:
         return []
-    rows = csv.DictReader(read_text(path, limit=MAX_JSON_BYTES, what="evaluation log", error=ConfigError).splitlines())
     try:
         return [[float(r["transitions"]), float(r["failure_rate"])] for r in rows if r.get("scenario") == test]
     except (KeyError, TypeError, ValueError) as exc:

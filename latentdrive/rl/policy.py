@@ -22,7 +22,7 @@ from latentdrive.bnn.train import load_trained_bottleneck
 from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.fileio import read_json
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
-from latentdrive.models.vfan import QNetwork
+from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rollout import Policy, PolicyInput
 from latentdrive.scenarios import get_spec
@@ -100,6 +100,9 @@ class FeatureCache:
     def __call__(self, obs: NDArray[np.float32], need: NDArray[np.bool_] | None = None) -> torch.Tensor:
         """Features ``(num_envs, n_av, *stored_shape)`` of ``obs`` ``(num_envs, n_av, 4, T, H, W)``,
         exact wherever ``need`` ``(num_envs, n_av)`` is True (everywhere when None)."""
+        if self.net.mode not in LATENT_MODES:
+            # Raw observations are their own features: no copy on the acting path.
+            return torch.from_numpy(obs).to(self.device)
         lead = obs.shape[:2]
         if obs is not self._key:
             self._key, self._have = obs, np.zeros(lead, dtype=bool)

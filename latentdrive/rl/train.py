@@ -62,7 +62,7 @@ from latentdrive.runtime import resolve_device, torch_settings
 from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed
 from latentdrive.vec import make_vec
 
-__all__ = ["REPLAY_PATTERN", "Learner", "TrainResult", "learner_steps", "make_store", "train_policy"]
+__all__ = ["EVALS", "EVAL_COLUMNS", "REPLAY_PATTERN", "Learner", "TrainResult", "learner_steps", "make_store", "train_policy"]
 
 #: Replay of segment k: ``replay-<k>.safetensors``. A new name per segment, so that a kill
 #: while saving never leaves a checkpoint beside a replay it does not belong to.
@@ -71,7 +71,7 @@ METRICS = "metrics.csv"
 EVALS = "eval.csv"
 _METRIC_COLUMNS = ("transitions", "updates", "episodes", "epsilon", "loss", "train_failure_rate",
                    "train_crash_rate", "transitions_per_s", "elapsed_s")
-_EVAL_COLUMNS = ("transitions", "scenario", "episodes", "failure_rate", "crash_rate", "success_rate", "mean_return")
+EVAL_COLUMNS = ("transitions", "scenario", "episodes", "failure_rate", "crash_rate", "success_rate", "mean_return")
 
 
 class TrainResult(dict[str, Any]):
@@ -280,7 +280,7 @@ def _same_encoder(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> boo
     return all(k in b and torch.equal(a[k], b[k]) for k in keys)
 
 
-_LOGS = {METRICS: ("training log", _METRIC_COLUMNS), EVALS: ("evaluation log", _EVAL_COLUMNS)}
+_LOGS = {METRICS: ("training log", _METRIC_COLUMNS), EVALS: ("evaluation log", EVAL_COLUMNS)}
 
 
 def _read_logs(run_dir: Path) -> dict[str, list[dict[str, str]]]:

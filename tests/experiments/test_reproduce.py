@@ -136,6 +136,7 @@ def test_running_another_config_into_a_study_folder_says_so(tmp_path: Path, monk
     ("probes", "probes.json", '{"raw": 1, "samples": {"train": 1, "test": 1}}', "raw"),
     ("probes", "probes.json", '{"raw": {}}', "samples"),
     ("evaluate/ref/random", "outcomes.json", "[]", "0 episodes of roundabout"),
+    ("policy/raw/roundabout-finetuned/s0", "run/eval.csv", "a,b\n1,2\n", "evaluation log"),
     ("evaluate/ref/random", "outcomes.json", None, "missing, though its step is recorded as finished"),
 ])
 def test_a_damaged_step_result_is_a_one_line_error_and_the_report_is_kept(
