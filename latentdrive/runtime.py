@@ -1,14 +1,29 @@
-"""Where and how torch runs: the device a config names, thread count and determinism for a run."""
+"""Where and how torch runs: the device a config names, its numeric precision, thread count and
+determinism for a run.
+
+One ``precision`` setting (``auto|fp32|bf16``) serves every network (the BNN, the frozen
+encoder, the VFAN learner): :func:`resolve_precision` turns it into a dtype for a device,
+and :func:`autocast` runs a block in it. ``auto`` picks bf16 autocast on CUDA and on CPUs
+with bf16 matrix units (AMX-BF16 or AVX512-BF16), where it is faster, and fp32 elsewhere,
+where bf16 is emulated and slower.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import os
 from collections.abc import Iterator
+from contextlib import AbstractContextManager
+from typing import Literal
 
 import torch
 
-__all__ = ["check_device", "resolve_device", "torch_settings"]
+__all__ = ["PRECISIONS", "Precision", "autocast", "check_device", "cpu_has_bf16", "resolve_device",
+           "resolve_precision", "torch_settings"]
+
+Precision = Literal["auto", "fp32", "bf16"]
+#: The values of every config's ``precision`` field.
+PRECISIONS: tuple[str, ...] = ("auto", "fp32", "bf16")
 
 
 def check_device(v: str) -> str:
@@ -25,6 +40,41 @@ def resolve_device(spec: str) -> torch.device:
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(spec)
 
+
+def cpu_has_bf16() -> bool:
+    """Whether this CPU has bf16 matrix instructions (AMX-BF16 or AVX512-BF16)."""
+    get = getattr(torch.cpu, "get_capabilities", None)
+    if get is None:  # older torch: no way to tell, so never guess bf16
+        return False
+    caps = get()
+    return bool(caps.get("amx_bf16") or caps.get("avx512_bf16"))
+
+
+def resolve_precision(spec: str, device: torch.device) -> torch.dtype:
+    """The compute dtype of ``spec`` on ``device``: ``torch.float32`` or ``torch.bfloat16``.
+
+    ``auto`` → bf16 on CUDA and on CPUs with bf16 matrix units (:func:`cpu_has_bf16`),
+    fp32 elsewhere. ``fp32`` and ``bf16`` are taken as they are.
+    """
+    if spec not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {spec!r}")
+    if spec == "fp32":
+        return torch.float32
+    if spec == "bf16":
+        return torch.bfloat16
+    if device.type == "cuda" or (device.type == "cpu" and cpu_has_bf16()):
+        return torch.bfloat16
+    return torch.float32
+
+
+def autocast(dtype: torch.dtype, device: torch.device) -> AbstractContextManager[object]:
+    """A block in ``dtype``: autocast for bf16 (weights and optimizer state stay fp32), nothing for fp32.
+
+    Losses should be computed on ``.float()`` outputs outside or at the end of the block.
+    """
+    if dtype == torch.float32:
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=device.type, dtype=dtype)
 
 
 @contextlib.contextmanager
