@@ -105,11 +105,24 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         get_spec(name)  # unknown names fail before any work
     if args.steps < 1:
         raise LatentDriveError("--steps must be at least 1")
-    if args.train and args.plan:
-        raise LatentDriveError("--plan and --train measure different things: give one")
+    if sum(map(bool, (args.train, args.plan, args.bottleneck))) > 1:
+        raise LatentDriveError("--train, --plan and --bottleneck measure different things: give one")
     if args.batch_size < 1:
         raise LatentDriveError(f"--batch-size must be at least 1, got {args.batch_size}")
     _check_output("--json", args.json)
+    if args.bottleneck:
+        from latentdrive.bnn.bench import bench_bottleneck, format_bottleneck_bench
+        from latentdrive.models.bottleneck import BottleneckConfig
+
+        fields = parse_override_args(args.overrides)
+        threads = int(fields.pop("threads", 1))
+        model_cfg = validate(BottleneckConfig, fields, prefix="model.")
+        _say(f"benchmarking BNN training in fp32 and bf16 ({args.steps} steps of {args.batch_size}) ...")
+        brows = bench_bottleneck(model_cfg, batch_size=args.batch_size, steps=args.steps, threads=threads)
+        print(format_bottleneck_bench(brows, model_cfg, threads))
+        if args.json:
+            _write_json(args.json, [r.as_dict() for r in brows])
+        return 0
     if args.train:
         from latentdrive.rl.bench import bench_training, format_train_bench
 
@@ -289,6 +302,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--plan", action="store_true",
                    help="benchmark the lookahead planner instead: ms per decision vs one simulated step "
                         "(--steps: decisions; --batch-size: envs; --set planner.KEY=VALUE)")
+    s.add_argument("--bottleneck", action="store_true",
+                   help="benchmark BNN training instead: samples/s of the network's step and of the training loop, "
+                        "in fp32 and bf16 (--steps: optimizer steps timed; --batch-size: samples per step; "
+                        "--set: BNN architecture fields and threads=N)")
     s.add_argument("--modes", default="", help="with --train: comma-separated modes (default raw,latent,end-to-end)")
     s.add_argument("--bnn", default="", help="with --train: a BNN run for mode latent (default: an untrained encoder, same cost)")
     s.add_argument("--repeat", type=positive_int, default=1,

@@ -11,15 +11,23 @@ from torch import Tensor
 
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.distance import group_mmd2
-from latentdrive.bnn.losses import vehicle_cells_l2
+from latentdrive.bnn.losses import (
+    PAPER_WEIGHTS,
+    CellWeights,
+    LossKind,
+    reconstruction_error,
+    vehicle_cells_l2,
+)
 from latentdrive.bnn.vehicles import VehicleCounts, vehicle_counts
 from latentdrive.models.bottleneck import BottleneckNetwork
+from latentdrive.runtime import autocast
 
 __all__ = ["VAL_KEYS", "Evaluation", "add_counts", "evaluate_bnn", "vehicle_counts_by_scenario"]
 
 #: The metrics :func:`evaluate_bnn` returns, in the order they are logged.
 VAL_KEYS: tuple[str, ...] = (
     "val_loss", "val_vehicle_l2", "val_vehicle_recall", "val_vehicle_precision", "val_mmd",
+    "val_train_loss",
 )
 
 
@@ -60,6 +68,9 @@ def evaluate_bnn(
     *,
     mmd_samples: int = 256,
     rng: np.random.Generator | None = None,
+    dtype: torch.dtype = torch.float32,
+    weights: CellWeights = PAPER_WEIGHTS,
+    loss: LossKind = "l2",
 ) -> Evaluation:
     """Validation metrics, the keys of :data:`VAL_KEYS`, and vehicle counts per scenario.
 
@@ -73,19 +84,29 @@ def evaluate_bnn(
       (latents flattened to ``(3d,)``), each scenario subsampled to ``mmd_samples`` vectors
       with ``rng`` (all of them, first ones first, when ``rng`` is None); NaN with fewer
       than two scenarios.
+    - ``val_train_loss``: the training objective's reconstruction term under ``weights``
+      and ``loss`` (:func:`~latentdrive.bnn.losses.reconstruction_error`), so that the
+      held-out loss compares with the training loss.
+
+    The network runs under autocast to ``dtype`` (:func:`latentdrive.runtime.autocast`);
+    scores are computed in float32.
     """
     was_training = model.training
     model.eval()
-    total, count = 0.0, 0
+    total, count, objective = 0.0, 0, 0.0
     veh_sum, veh_count = 0.0, 0
     per_scenario: dict[int, VehicleCounts] = {}
     lat: list[Tensor] = []
     lab: list[Tensor] = []
     for batch in batches:
         b = batch.to(device)
-        recon_x, z = model(b.noisy)
+        with autocast(dtype, device):
+            logits, z = model.forward_logits(b.noisy)
+        logits, z = logits.float(), z.float()
+        recon_x = torch.sigmoid(logits)
         target = model.pairs(b.clean)
-        loss = torch.mean((recon_x - target) ** 2)
+        mse = torch.mean((recon_x - target) ** 2)
+        objective += float(reconstruction_error(logits, target, weights, loss)) * b.noisy.shape[0]
         v_sum, v_count = vehicle_cells_l2(recon_x, target)
         veh_sum += float(v_sum)
         veh_count += int(v_count)
@@ -93,7 +114,7 @@ def evaluate_bnn(
             per_scenario, vehicle_counts_by_scenario(recon_x[:, 0], target[:, 0], b.scenario)
         )
         n = b.noisy.shape[0]
-        total += float(loss) * n
+        total += float(mse) * n
         count += n
         lat.append(z.flatten(1).cpu())
         lab.append(b.scenario.cpu())
@@ -107,6 +128,7 @@ def evaluate_bnn(
         "val_vehicle_recall": counts.recall,
         "val_vehicle_precision": counts.precision,
         "val_mmd": _mean_scenario_distance(torch.cat(lat), torch.cat(lab), mmd_samples, rng),
+        "val_train_loss": objective / count,
     }
     return Evaluation(metrics, per_scenario)
 

@@ -1,16 +1,21 @@
-"""The BNN's training objective: the denoising reconstruction error (the paper's L2, eq. 11,
-or a binary cross-entropy), optionally with vehicle cells weighted up, plus the λ-weighted
-scenario-distance regularizer.
+"""The BNN's training objective: a per-cell reconstruction error of the decoder's logits
+(the paper's L2 through the sigmoid, eq. 11, or binary cross-entropy with logits), weighted
+per channel and up on vehicle cells, plus the λ-weighted scenario-distance regularizer.
 
 Reconstructions and targets are channel pairs ``(B, 3, 2, T, H, W)`` (pairs HV+AV, RL+AV,
-MV+AV; see :mod:`latentdrive.models.bottleneck`). The error is averaged over all elements
-rather than summed, so that its scale does not depend on batch or grid size (the sum is
-this mean times a constant; only the effective learning rate differs).
+MV+AV; see :mod:`latentdrive.models.bottleneck`). The error is a weighted mean over all
+elements, so that its scale does not depend on batch or grid size.
+
+Why the weights (docs/bnn-notes.md): vehicles cover about 1% of the cells. Under a plain
+mean, the noise-free road layout is most of the loss and the vehicle cells about 2% of it,
+so the cheapest reconstruction draws the road and no car. The road channel is therefore
+weighted down, the AV channel (present in all three pairs) counts 1/3 in each so that it
+weighs as much as one channel in all, and vehicle cells are weighted up.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -21,53 +26,86 @@ from latentdrive.bnn.distance import latent_regularizer
 from latentdrive.models.bottleneck import BottleneckNetwork
 
 __all__ = [
+    "PAPER_WEIGHTS",
+    "CellWeights",
     "LossKind",
+    "cell_weights",
     "reconstruction_error",
     "reconstruction_loss",
     "step_losses",
     "vehicle_cells_l2",
-    "weighted_l2",
 ]
 
-#: Per-cell reconstruction error: squared error (the paper's) or binary cross-entropy.
+#: Per-cell reconstruction error: squared error of the sigmoid output (the paper's) or
+#: binary cross-entropy with logits.
 LossKind = Literal["l2", "bce"]
 
 # Which (pair, channel) of the (B, 3, 2, T, H, W) reconstruction shows vehicles: all but
 # the road layout (RL, pair RL+AV channel 0), which is dense and needs no up-weighting.
 _VEHICLE_CHANNELS = torch.tensor([[1.0, 1.0], [0.0, 1.0], [1.0, 1.0]]).view(1, 3, 2, 1, 1, 1)
+# Where each channel sits: (pair, member) of the road and of the three AV copies.
+_ROAD = (1, 0)
+_AV_COPIES = ((0, 1), (1, 1), (2, 1))
+
+
+class CellWeights(NamedTuple):
+    """Weights of the per-cell error.
+
+    - ``foreground``: multiplies vehicle cells (non-zero clean target in the HV, AV and MV
+      channels); other cells weigh 1 before the channel weights.
+    - ``road``: the road-layout channel's weight.
+    - ``av_share``: each of the three AV-channel copies' weight (1/3: the AV channel weighs
+      as one channel in all; 1: the paper's plain mean, where it counts three times).
+    """
+
+    foreground: float = 1.0
+    road: float = 1.0
+    av_share: float = 1.0
+
+
+#: The paper's plain mean (eq. 11): every cell of every pair weighs 1.
+PAPER_WEIGHTS = CellWeights()
+
+
+def _channel_weights(w: CellWeights, device: torch.device, dtype: torch.dtype) -> Tensor:
+    ch = torch.ones(3, 2, dtype=dtype)
+    ch[_ROAD] = w.road
+    for p in _AV_COPIES:
+        ch[p] = w.av_share
+    return ch.view(1, 3, 2, 1, 1, 1).to(device)
+
+
+def cell_weights(target: Tensor, w: CellWeights) -> Tensor:
+    """Per-cell weights ``(B, 3, 2, T, H, W)`` of clean pair targets of that shape (see :class:`CellWeights`)."""
+    vehicle = (target > 0).to(target.dtype) * _VEHICLE_CHANNELS.to(target.device, target.dtype)
+    return (1.0 + (w.foreground - 1.0) * vehicle) * _channel_weights(w, target.device, target.dtype)
 
 
 def reconstruction_error(
-    recon: Tensor, target: Tensor, foreground_weight: float = 1.0, loss: LossKind = "l2"
+    logits: Tensor, target: Tensor, weights: CellWeights = PAPER_WEIGHTS, loss: LossKind = "l2"
 ) -> Tensor:
-    """Per-cell error of pair reconstructions ``(B, 3, 2, T, H, W)`` (both in [0, 1]),
-    averaged with weight ``foreground_weight`` on vehicle cells (non-zero target cells of
-    the HV, AV and MV channels) and 1 elsewhere, normalized by the total weight.
+    """Weighted mean per-cell error of pair reconstruction ``logits`` ``(B, 3, 2, T, H, W)``
+    against clean targets in [0, 1] of the same shape: ``Σ w·err / Σ w`` with the weights
+    of :func:`cell_weights` (a plain mean under :data:`PAPER_WEIGHTS`).
 
-    ``loss="l2"``: the squared error, the paper's eq. 11 (plain MSE when the weight is 1).
-    ``loss="bce"``: the binary cross-entropy of the cell values, treating the targets as
-    soft labels (its minimum is the targets' own entropy, not 0). Through the output
-    sigmoid the L2 gradient of a cell is ``(r - t)·r·(1 - r)``, which is tiny while the
-    decoder still draws near-empty maps (r ≈ 0.05); the cross-entropy's is ``r - t``, so
-    vehicle cells are learned without that damping.
+    ``loss="l2"``: the squared error of ``sigmoid(logits)``, the paper's eq. 11.
+    ``loss="bce"``: binary cross-entropy with logits, the targets taken as soft labels (its
+    minimum is the targets' own entropy, not 0). Through the sigmoid the L2 gradient of a
+    cell is ``(r - t)·r·(1 - r)``, tiny while the decoder still draws near-empty maps
+    (r ≈ 0.05); the cross-entropy's is ``r - t``, so vehicle cells are learned from the
+    first steps. Computed in float32 whatever the dtype of ``logits`` (bf16 autocast).
     """
+    logits, target = logits.float(), target.float()
     if loss == "l2":
-        err = (recon - target) ** 2
+        err = (torch.sigmoid(logits) - target) ** 2
     elif loss == "bce":
-        # binary_cross_entropy bounds log(0) at -100, so saturated outputs stay finite.
-        err = F.binary_cross_entropy(recon, target, reduction="none")
+        err = F.binary_cross_entropy_with_logits(logits, target, reduction="none")
     else:
         raise ValueError(f"unknown loss {loss!r}; expected 'l2' or 'bce'")
-    if foreground_weight == 1.0:
+    if weights == PAPER_WEIGHTS:
         return torch.mean(err)
-    vehicle = (target > 0).to(err.dtype) * _VEHICLE_CHANNELS.to(err.device, err.dtype)
-    w = 1.0 + (foreground_weight - 1.0) * vehicle
+    w = cell_weights(target, weights)
     return torch.sum(w * err) / torch.sum(w)
-
-
-def weighted_l2(recon: Tensor, target: Tensor, foreground_weight: float = 1.0) -> Tensor:
-    """:func:`reconstruction_error` with the squared error (the paper's loss)."""
-    return reconstruction_error(recon, target, foreground_weight, "l2")
 
 
 def vehicle_cells_l2(recon: Tensor, target: Tensor) -> tuple[Tensor, Tensor]:
@@ -82,22 +120,21 @@ def step_losses(
     model: BottleneckNetwork,
     batch: BNNBatch,
     lambda_distance: float = 0.0,
-    foreground_weight: float = 1.0,
+    weights: CellWeights = PAPER_WEIGHTS,
     loss: LossKind = "l2",
 ) -> tuple[Tensor, Tensor, Tensor]:
-    """The training objective of one batch: ``(total, recon, reg)`` scalar tensors.
+    """The training objective of one batch: ``(total, recon, reg)`` scalar float32 tensors.
 
-    ``recon`` is the (foreground-weighted, see :func:`reconstruction_error`) error between
-    ``model(batch.noisy)``'s reconstruction ``(B, 3, 2, T, H, W)`` and
-    ``model.pairs(batch.clean)``: the denoising target is the clean observation. ``reg``
-    is :func:`latent_regularizer` of the latents ``(B, 3, d)`` grouped by
-    ``batch.scenario``, computed only when ``lambda_distance > 0`` (else 0).
-    ``total = recon + lambda_distance · reg``.
+    ``recon`` is :func:`reconstruction_error` between the logits of ``batch.noisy``'s
+    reconstruction ``(B, 3, 2, T, H, W)`` and ``model.pairs(batch.clean)``: the denoising
+    target is the clean observation. ``reg`` is :func:`latent_regularizer` of the latents
+    ``(B, 3, d)`` grouped by ``batch.scenario``, computed only when ``lambda_distance > 0``
+    (else 0). ``total = recon + lambda_distance · reg``.
     """
-    recon_x, latents = model(batch.noisy)
-    recon = reconstruction_error(recon_x, model.pairs(batch.clean), foreground_weight, loss)
+    logits, latents = model.forward_logits(batch.noisy)
+    recon = reconstruction_error(logits, model.pairs(batch.clean), weights, loss)
     if lambda_distance > 0.0:
-        reg = latent_regularizer(latents, batch.scenario)
+        reg = latent_regularizer(latents.float(), batch.scenario)
         return recon + lambda_distance * reg, recon, reg
     zero = recon.new_zeros(())
     return recon, recon, zero
@@ -106,5 +143,3 @@ def step_losses(
 def reconstruction_loss(model: BottleneckNetwork, batch: BNNBatch) -> Tensor:
     """Mean squared error between the reconstruction of ``batch.noisy`` and the clean pairs."""
     return step_losses(model, batch, 0.0)[1]
-
-

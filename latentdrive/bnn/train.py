@@ -40,7 +40,7 @@ from latentdrive.bnn.checkpoint import (
     save_checkpoint,
 )
 from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
-from latentdrive.bnn.losses import LossKind, step_losses
+from latentdrive.bnn.losses import CellWeights, LossKind, step_losses
 from latentdrive.bnn.prefetch import prefetch
 from latentdrive.bnn.resume import CHECKPOINT_NAME, check_run_dir, saved_configs
 from latentdrive.bnn.runlog import Meter, MetricsLog, peak_rss_mb
@@ -48,18 +48,31 @@ from latentdrive.config import Config, config_hash, validate
 from latentdrive.fileio import atomic_write_text
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.runlock import dir_lock
-from latentdrive.runtime import check_device, resolve_device, torch_settings
+from latentdrive.runtime import (
+    Precision,
+    autocast,
+    check_device,
+    resolve_device,
+    resolve_precision,
+    torch_settings,
+)
 
 __all__ = [
+    "BEST_NAME",
     "CHECKPOINT_NAME",
     "CONFIG_NAME",
     "BNNTrainConfig",
     "check_run_dir",
     "load_trained_bottleneck",
     "train_bnn",
+    "validation_score",
 ]
 
 CONFIG_NAME = "config.json"
+#: The weights of the epoch that scored best on validation (see :func:`validation_score`),
+#: which :func:`load_trained_bottleneck` loads; ``checkpoint.safetensors`` is the last
+#: epoch's, which a resumed run continues from.
+BEST_NAME = "best.safetensors"
 
 Phase = Literal["pretrain", "mixed"]
 
@@ -85,16 +98,24 @@ class BNNTrainConfig(Config):
         "array_batches_fn takes this value.",
     )
     lr: float = Field(1e-3, gt=0.0, le=1.0, description="AdamW (peak) learning rate, per step.")
-    lr_schedule: Literal["constant", "cosine"] = Field(
-        "constant",
+    lr_schedule: Literal["constant", "cosine", "warmup_cosine"] = Field(
+        "warmup_cosine",
         description="'constant': lr throughout. 'cosine': lr in the first epoch, then down a "
-        "half cosine to lr_final_fraction·lr in the last one; set per epoch, from the epoch "
-        "number and the total, so a resumed run follows the same curve (unless the epoch "
-        "counts change on resumption).",
+        "half cosine to lr_final_fraction·lr in the last one, set per epoch. "
+        "'warmup_cosine': set per step: a linear warm-up over the first warmup_fraction of "
+        "the run's steps, then a half cosine down to lr_final_fraction·lr at its last step "
+        "(needs the number of steps per epoch, which train-bnn and the studies know). Both "
+        "follow from the step or epoch and the totals, so a resumed run follows the same "
+        "curve (unless the epoch counts change on resumption).",
     )
     lr_final_fraction: float = Field(
         0.05, ge=0.0, le=1.0,
-        description="The cosine schedule's last-epoch learning rate, as a fraction of lr.",
+        description="The cosine schedules' last learning rate, as a fraction of lr.",
+    )
+    warmup_fraction: float = Field(
+        0.05, ge=0.0, lt=1.0,
+        description="Share of the run's steps spent warming the learning rate up linearly "
+        "('warmup_cosine' only).",
     )
     weight_decay: float = Field(
         0.0, ge=0.0, le=1.0,
@@ -106,18 +127,49 @@ class BNNTrainConfig(Config):
         "dimensionless) in the mixed phase. 0 trains on reconstruction only.",
     )
     loss: LossKind = Field(
-        "l2",
-        description="Per-cell reconstruction error: 'l2' (the paper's eq. 11) or 'bce' "
-        "(binary cross-entropy of the [0, 1] cell values; see "
-        "latentdrive.bnn.losses.reconstruction_error). Validation always reports the MSE.",
+        "bce",
+        description="Per-cell reconstruction error: 'l2' (squared error of the sigmoid output, "
+        "the paper's eq. 11) or 'bce' (binary cross-entropy with the decoder's logits, which "
+        "learns vehicle cells without the sigmoid's damping; see "
+        "latentdrive.bnn.losses.reconstruction_error). Validation reports the plain MSE and "
+        "the loss under the training weights.",
     )
     foreground_weight: float = Field(
-        1.0, ge=1.0, le=1e4,
+        20.0, ge=1.0, le=1e4,
         description="Weight, in the reconstruction loss, of vehicle cells (non-zero clean target in the HV, "
-        "AV and MV channels); other cells weigh 1, and the loss is divided by the total weight. "
-        "1 is the paper's plain L2 (eq. 11). Vehicles cover a few cells of mostly empty "
-        "maps, so plain L2 is nearly minimized by drawing no vehicle at all; a weight > 1 "
-        "makes missing them costly.",
+        "AV and MV channels) at the first step; other cells weigh 1 (times their channel "
+        "weight), and the loss is divided by the total weight. 1 with road_weight = "
+        "av_weight = 1 and loss 'l2' is the paper's plain L2 (eq. 11). Vehicles cover about "
+        "1% of mostly empty maps, so a plain mean is nearly minimized by drawing no vehicle "
+        "at all; a weight > 1 makes missing them costly.",
+    )
+    foreground_weight_final: float | None = Field(
+        5.0, ge=1.0, le=1e4,
+        description="Vehicle-cell weight at the last step, reached linearly over the run's "
+        "steps: a high weight buys recall early (every car drawn), a lower one precision late "
+        "(no halo around them). None keeps foreground_weight throughout.",
+    )
+    road_weight: float = Field(
+        0.3, gt=0.0, le=1e4,
+        description="Weight of the road-layout channel's cells. The noise-free road is "
+        "otherwise most of the loss (1 is the paper's plain mean).",
+    )
+    av_weight: float = Field(
+        1.0 / 3.0, gt=0.0, le=1e4,
+        description="Weight of each of the three copies of the AV channel (one per pair): "
+        "1/3 makes the AV channel weigh as one channel in all; 1 is the paper's plain mean, "
+        "where it counts three times.",
+    )
+    val_every: int = Field(
+        2, ge=1, le=100_000,
+        description="Validate every this many epochs, and after the last one. Validation "
+        "scores every vehicle of the held-out maps, a noticeable share of a short epoch.",
+    )
+    precision: Precision = Field(
+        "auto",
+        description="'auto' (bf16 autocast on CUDA and on CPUs with AMX-BF16 or AVX512-BF16, "
+        "fp32 elsewhere), 'fp32' or 'bf16'. Weights, optimizer state and losses stay float32. "
+        "bf16 results are reproducible on one machine, not bitwise across machines.",
     )
     prefetch: int = Field(
         2, ge=0, le=64,
@@ -163,13 +215,31 @@ class BNNTrainConfig(Config):
         """Pretraining plus mixed epochs."""
         return self.pretrain_epochs + self.mixed_epochs
 
-    def epoch_lr(self, epoch: int) -> float:
-        """Learning rate of global epoch ``epoch`` (0-based) under :attr:`lr_schedule`."""
-        if self.lr_schedule == "constant" or self.total_epochs <= 1:
-            return self.lr
-        frac = min(epoch, self.total_epochs - 1) / (self.total_epochs - 1)
+    def _cosine(self, frac: float) -> float:
         final = self.lr_final_fraction
         return self.lr * (final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * frac)))
+
+    def epoch_lr(self, epoch: int) -> float:
+        """Learning rate of global epoch ``epoch`` (0-based) under the 'cosine' or 'constant' schedule."""
+        if self.lr_schedule == "constant" or self.total_epochs <= 1:
+            return self.lr
+        return self._cosine(min(epoch, self.total_epochs - 1) / (self.total_epochs - 1))
+
+    def step_lr(self, step: int, total_steps: int) -> float:
+        """Learning rate of optimizer step ``step`` (0-based) of ``total_steps`` under 'warmup_cosine'."""
+        warm = int(self.warmup_fraction * total_steps)
+        if step < warm:
+            return self.lr * (step + 1) / warm
+        rest = total_steps - warm
+        return self._cosine(min(step - warm, rest - 1) / (rest - 1)) if rest > 1 else self.lr
+
+    def cell_weights(self, step: int, total_steps: int) -> CellWeights:
+        """The loss's cell weights at step ``step`` of ``total_steps`` (see :attr:`foreground_weight_final`)."""
+        fg = self.foreground_weight
+        if self.foreground_weight_final is not None and total_steps > 1:
+            frac = min(step, total_steps - 1) / (total_steps - 1)
+            fg += (self.foreground_weight_final - fg) * frac
+        return CellWeights(fg, self.road_weight, self.av_weight)
 
     def phase(self, epoch: int) -> Phase:
         """The phase of global epoch ``epoch`` (0-based)."""
@@ -188,6 +258,7 @@ def train_bnn(
     run_dir: str | Path,
     resume: bool = False,
     progress: bool = True,
+    steps_per_epoch: int | None = None,
 ) -> dict[str, float]:
     """Train a :class:`BottleneckNetwork` and return the final epoch's metrics.
 
@@ -196,6 +267,13 @@ def train_bnn(
     scenario). For a resumed run to match an uninterrupted one, its batches must depend
     on ``epoch`` only (see :func:`latentdrive.bnn.batch.array_batches_fn`).
     ``val_batches_fn()`` yields the validation batches (``None`` skips validation).
+    ``steps_per_epoch``, the number of batches an epoch yields, sizes the per-step
+    schedules (learning rate, vehicle weight); when None it is counted by iterating
+    ``train_batches_fn(0)`` once.
+
+    After each validation the weights are written to ``run_dir/best.safetensors`` when
+    they score best so far (:func:`validation_score`); without validation, after every
+    epoch.
 
     ``resume=True`` continues from ``run_dir/checkpoint.safetensors`` (a fresh start when
     there is none); the model config and all training settings except the epoch counts,
@@ -213,7 +291,21 @@ def train_bnn(
     # One process per run directory: a second one would resume from, and overwrite, the
     # first one's checkpoints.
     with dir_lock(run, "train-bnn"):
-        return _train(cfg, model_cfg, train_batches_fn, val_batches_fn, run, resume, progress)
+        if steps_per_epoch is None:
+            steps_per_epoch = sum(1 for _ in train_batches_fn(0))
+        if steps_per_epoch < 1:
+            raise ValueError("train_batches_fn(0) yielded no batches")
+        return _train(cfg, model_cfg, train_batches_fn, val_batches_fn, run, resume, progress,
+                      steps_per_epoch)
+
+
+def validation_score(metrics: dict[str, float]) -> float:
+    """How good a validated epoch is: the harmonic mean (F1) of held-out vehicle recall and
+    precision, so that neither a car-free map nor a bright haze scores; −∞ when undefined."""
+    r, p = metrics.get("val_vehicle_recall", math.nan), metrics.get("val_vehicle_precision", math.nan)
+    if not (math.isfinite(r) and math.isfinite(p)) or r + p <= 0:
+        return -math.inf
+    return 2 * r * p / (r + p)
 
 
 def _train(
@@ -224,11 +316,14 @@ def _train(
     run: Path,
     resume: bool,
     progress: bool,
+    steps_per_epoch: int,
 ) -> dict[str, float]:
     ckpt = run / CHECKPOINT_NAME
+    total_steps = steps_per_epoch * cfg.total_epochs
     # The metrics logged so far are read (and checked) here, before anything is written.
     logged = check_run_dir(run, cfg, model_cfg, resume)
     device = resolve_device(cfg.device)
+    dtype = resolve_precision(cfg.precision, device)
     say: Callable[[str], None] = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
 
     with torch_settings(cfg.deterministic, device, cfg.num_threads):
@@ -240,6 +335,7 @@ def _train(
         optimizer = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
 
         start_epoch, step = 0, 0
+        best = -math.inf
         last: dict[str, float] = {}
         resumed = False
         if resume and ckpt.exists():
@@ -254,6 +350,7 @@ def _train(
                 )
             start_epoch, step = info.epoch, info.step
             last = {k: float(v) for k, v in info.extra.get("metrics", {}).items()}
+            best = float(info.extra.get("best_score", -math.inf))
             resumed = True
             say(f"resuming {ckpt} at epoch {start_epoch}, step {step}")
         elif resume:
@@ -274,15 +371,22 @@ def _train(
             for epoch in range(start_epoch, cfg.total_epochs):
                 phase = cfg.phase(epoch)
                 lam = cfg.lambda_distance if phase == "mixed" else 0.0
-                for group in optimizer.param_groups:
-                    group["lr"] = cfg.epoch_lr(epoch)
+                if cfg.lr_schedule != "warmup_cosine":
+                    for group in optimizer.param_groups:
+                        group["lr"] = cfg.epoch_lr(epoch)
                 model.train()
                 t_epoch = time.perf_counter()
                 ep, window = Meter(), Meter()
                 t_prev = time.perf_counter()
                 for batch in prefetch(train_batches_fn(epoch), cfg.prefetch):
                     b = batch.to(device)
-                    total, recon, reg = step_losses(model, b, lam, cfg.foreground_weight, cfg.loss)
+                    if cfg.lr_schedule == "warmup_cosine":
+                        for group in optimizer.param_groups:
+                            group["lr"] = cfg.step_lr(step, total_steps)
+                    with autocast(dtype, device):
+                        total, recon, reg = step_losses(
+                            model, b, lam, cfg.cell_weights(step, total_steps), cfg.loss
+                        )
                     if not torch.isfinite(total):
                         raise FloatingPointError(
                             f"non-finite loss {float(total)} at step {step} (epoch {epoch})"
@@ -314,10 +418,12 @@ def _train(
                     raise ValueError(f"train_batches_fn({epoch}) yielded no batches")
 
                 val: dict[str, float] = dict.fromkeys(VAL_KEYS, float("nan"))
-                if val_batches_fn is not None:
+                validate_now = (epoch + 1) % cfg.val_every == 0 or epoch + 1 == cfg.total_epochs
+                if val_batches_fn is not None and validate_now:
                     val = evaluate_bnn(
                         model, val_batches_fn(), device,
-                        mmd_samples=cfg.val_mmd_samples, rng=np_rng,
+                        mmd_samples=cfg.val_mmd_samples, rng=np_rng, dtype=dtype,
+                        weights=cfg.cell_weights(step - 1, total_steps), loss=cfg.loss,
                     ).metrics
                 elapsed = time.perf_counter() - t_epoch
                 train_loss, train_recon, train_reg = ep.means()
@@ -346,10 +452,19 @@ def _train(
                 if device.type == "cuda":
                     states = torch.cuda.get_rng_state_all()
                     extra_tensors = {f"cuda_rng_{i}": st for i, st in enumerate(states)}
+                validated = val_batches_fn is not None and validate_now
+                score = validation_score(val) if validated else -math.inf
+                is_best = (validated and score > best) or val_batches_fn is None
+                best = max(best, score)
+                if is_best:
+                    # Written before the checkpoint: a run cut off between the two resumes
+                    # from the previous checkpoint and redoes this epoch, writing it again.
+                    save_checkpoint(run / BEST_NAME, model, step=step, epoch=epoch + 1, config=configs,
+                                    extra={"metrics": last})
                 save_checkpoint(
                     ckpt, model, optimizer, step=step, epoch=epoch + 1, config=configs,
                     torch_generator=torch.default_generator, numpy_generator=np_rng,
-                    extra={"metrics": last}, extra_tensors=extra_tensors,
+                    extra={"metrics": last, "best_score": best}, extra_tensors=extra_tensors,
                 )
                 mem = f"peak rss {last['peak_rss_mb']:.0f} MB"
                 if "peak_cuda_mb" in last:
@@ -360,7 +475,7 @@ def _train(
                     f"reg {last['train_reg']:.4f}) "
                     f"val {val['val_loss']:.5f} (vehicle cells {val['val_vehicle_l2']:.4f}, "
                     f"recall {val['val_vehicle_recall']:.2f}, precision {val['val_vehicle_precision']:.2f}) "
-                    f"mmd {val['val_mmd']:.4f} | "
+                    f"mmd {val['val_mmd']:.4f}{' (best)' if is_best and validated else ''} | "
                     f"{last['samples_per_s']:.0f} samples/s | {elapsed:.1f} s | {mem}"
                 )
         finally:
@@ -371,14 +486,19 @@ def _train(
 def load_trained_bottleneck(
     run_dir: str | Path, device: str | torch.device = "cpu"
 ) -> BottleneckNetwork:
-    """The trained network of ``run_dir`` in eval mode with frozen parameters.
+    """The trained network of ``run_dir`` in eval mode with frozen parameters: the weights
+    that scored best on validation (``best.safetensors``), or the last checkpoint's for a
+    run written before best weights were kept.
 
     Its model config is taken from the checkpoint itself. Raises :class:`CheckpointError`
     when the checkpoint is missing, corrupt, or does not match its own config.
     """
-    ckpt = Path(run_dir) / CHECKPOINT_NAME
+    last = Path(run_dir) / CHECKPOINT_NAME
+    if not last.exists():
+        raise CheckpointError(f"{last}: no checkpoint in {run_dir}")
+    ckpt = Path(run_dir) / BEST_NAME
     if not ckpt.exists():
-        raise CheckpointError(f"{ckpt}: no checkpoint in {run_dir}")
+        ckpt = last
     saved = saved_configs(Path(run_dir))
     if not isinstance(saved, dict):
         raise CheckpointError(f"{ckpt}: holds no training config (not a BNN checkpoint)")

@@ -155,7 +155,10 @@ def train_on_dataset(
     # Held from the split record on, so a refused second run writes nothing here.
     with dir_lock(run, "train-bnn"):
         atomic_write_text(run / SPLIT, json.dumps(split) + "\n")
-        return train_bnn(train_cfg, model_cfg, train_fn, val_fn, run, resume=resume, progress=progress)
+        # Every batch but the last is full (ShardDataset.batches), mixed or not.
+        steps = math.ceil(ds.num_samples(train_ids) / train_cfg.batch_size)
+        return train_bnn(train_cfg, model_cfg, train_fn, val_fn, run, resume=resume, progress=progress,
+                         steps_per_epoch=steps)
 
 
 def _model_config(latent_dim: int, channels: tuple[int, ...], model: dict[str, Any] | None,

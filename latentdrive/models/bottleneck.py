@@ -10,13 +10,24 @@ Encoder of one pair ``(B, 2, T, H, W)``::
 
     Conv3d(2→c0, k=(1,ks,ks), s=(1,2,2))          spatial only: per-frame features
     Conv3d(c_{i-1}→c_i, k=(kt,ks,ks), s=(1,2,2))  for i ≥ 1: spatio-temporal
-    flatten → Linear → d → latent activation
+    [residual 3D conv blocks at the last stage]
+    flatten → [Linear → hidden → ReLU] → Linear → d → [LayerNorm] → latent activation
 
 Decoder, the mirror image::
 
-    Linear(d → flat) → reshape to the last stage's (c, T, h, w)
+    [Linear(d → hidden) → ReLU] → Linear(→ flat) → reshape to the last stage's (c, T, h, w)
+    [residual 3D conv blocks at the last stage]
     ConvTranspose3d(c_i→c_{i-1}, k=(kt,ks+1,ks+1), s=(1,2,2)), crop   for i = L-1 … 1
-    ConvTranspose3d(c0→2, k=(1,ks+1,ks+1), s=(1,2,2)), crop → sigmoid
+    ConvTranspose3d(c0→2, k=(1,ks+1,ks+1), s=(1,2,2)), crop → logits → sigmoid
+
+The bracketed parts are :class:`BottleneckConfig` options (``head_hidden``,
+``residual_blocks``, ``latent_norm``); with all three off the network is the paper's
+structure, a single linear layer on each side of the code. Three things in that plain
+structure lose the vehicles (docs/bnn-notes.md): one ReLU layer between the code and the
+map leaves the decoder too little capacity to place a handful of cars, and a sigmoid code
+fed by one linear layer from thousands of features saturates within a few dozen Adam
+steps (the code turns nearly binary). A hidden layer on each side and a LayerNorm before
+the activation address them; the code stays bounded in (0, 1) for the Q-network.
 
 Each encoder stage halves H and W, rounding up (``ceil(n/2)``: odd kernels padded by
 ``k//2`` with stride 2), and keeps T (temporal padding ``kt//2``), so every ``T ≥ 1`` and
@@ -26,8 +37,10 @@ kernel ``ks+1`` padded by ``(ks-1)/2``, which also overlaps every output cell ev
 so avoids checkerboard artefacts) and is cropped to the size the matching encoder stage
 received, which restores odd sizes exactly. Transposed convolutions compute at the
 coarse resolution; upsampling followed by a convolution would compute at the fine one,
-about ten times slower on CPU for the last stage at the default size. The output is a
-sigmoid, so reconstructions lie in [0, 1] like the VelocityMap.
+about ten times slower on CPU for the last stage at the default size. The decoder ends
+in logits (:meth:`PairAutoencoder.decode_logits`, for losses computed with logits);
+:meth:`~PairAutoencoder.decode` applies the sigmoid, so reconstructions lie in [0, 1]
+like the VelocityMap.
 
 This module holds ``nn.Module`` code only; training lives in :mod:`latentdrive.bnn`.
 """
@@ -97,6 +110,24 @@ class BottleneckConfig(Config):
         description="σ_y of paper eq. 9 applied to the code. Sigmoid keeps latents in [0, 1], "
         "the same range as the VelocityMaps the Q-network sees in the baseline.",
     )
+    latent_norm: bool = Field(
+        True,
+        description="LayerNorm (with its own scale and shift) on the code before the latent "
+        "activation. Without it a sigmoid code fed by one linear layer from thousands of "
+        "features saturates within tens of steps (docs/bnn-notes.md). False is the paper's "
+        "structure.",
+    )
+    head_hidden: int = Field(
+        256, ge=0, le=8192,
+        description="Width of a hidden ReLU layer between the convolutional features and the "
+        "code, on both sides (flat → hidden → d, d → hidden → flat). 0: one linear layer each "
+        "side, the paper's structure.",
+    )
+    residual_blocks: int = Field(
+        0, ge=0, le=8,
+        description="Residual 3D conv blocks (two convolutions each) at the last, coarsest "
+        "stage of the encoder and, mirrored, of the decoder. 0 is the paper's structure.",
+    )
     initial_output: float = Field(
         0.05, gt=0.0, lt=1.0,
         description="Reconstruction value at initialization (the sigmoid of the output bias), "
@@ -152,12 +183,35 @@ def _activation(name: str) -> nn.Module:
     return nn.Identity()
 
 
+class _Residual(nn.Module):
+    """``x + conv(relu(conv(relu(x))))`` at one resolution: same channels, same size."""
+
+    def __init__(self, channels: int, kt: int, ks: int) -> None:
+        super().__init__()
+        pad = (kt // 2, ks // 2, ks // 2)
+        self.conv1 = nn.Conv3d(channels, channels, (kt, ks, ks), padding=pad)
+        self.conv2 = nn.Conv3d(channels, channels, (kt, ks, ks), padding=pad)
+
+    def forward(self, x: Tensor) -> Tensor:
+        return x + self.conv2(F.relu(self.conv1(F.relu(x))))
+
+
+def _head(sizes: list[int]) -> nn.Sequential:
+    """Linear layers through ``sizes`` with ReLUs between them (none after the last)."""
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        if i:
+            layers.append(nn.ReLU())
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+    return nn.Sequential(*layers)
+
+
 class PairAutoencoder(nn.Module):
     """Denoising 3D-conv autoencoder for one channel pair.
 
     ``encode``: ``(B, 2, T, H, W)`` in [0, 1] → ``(B, d)``;
-    ``decode``: ``(B, d)`` → ``(B, 2, T, H, W)`` in [0, 1];
-    ``forward``: both, returning ``(reconstruction, latent)``.
+    ``decode_logits``: ``(B, d)`` → ``(B, 2, T, H, W)`` logits; ``decode``: their sigmoid,
+    in [0, 1]; ``forward``: encode and decode, returning ``(reconstruction, latent)``.
     """
 
     def __init__(self, cfg: BottleneckConfig) -> None:
@@ -180,6 +234,14 @@ class PairAutoencoder(nn.Module):
             )
             enc.append(nn.ReLU())
         self.encoder_convs = nn.Sequential(*enc)
+        kt_last = 1 if len(cfg.channels) == 1 else kt
+        c_last = cfg.channels[-1]
+        self.encoder_blocks = nn.Sequential(
+            *(_Residual(c_last, kt_last, ks) for _ in range(cfg.residual_blocks))
+        )
+        self.decoder_blocks = nn.Sequential(
+            *(_Residual(c_last, kt_last, ks) for _ in range(cfg.residual_blocks))
+        )
 
         # Record every stage's (T, H, W) with a dummy forward so the decoder can crop to
         # exactly those sizes, whatever the input shape.
@@ -192,12 +254,14 @@ class PairAutoencoder(nn.Module):
                     t_, h_, w_ = h.shape[2:]
                     sizes.append((int(t_), int(h_), int(w_)))
         self.stage_sizes: tuple[tuple[int, int, int], ...] = tuple(sizes)
-        self.code_shape: tuple[int, int, int, int] = (cfg.channels[-1], *sizes[-1])
+        self.code_shape: tuple[int, int, int, int] = (c_last, *sizes[-1])
         flat = int(h.numel())
 
-        self.to_latent = nn.Linear(flat, cfg.latent_dim)
+        hidden = [cfg.head_hidden] if cfg.head_hidden else []
+        self.to_latent = _head([flat, *hidden, cfg.latent_dim])
+        self.latent_norm: nn.Module = nn.LayerNorm(cfg.latent_dim) if cfg.latent_norm else nn.Identity()
         self.latent_act = _activation(cfg.latent_activation)
-        self.from_latent = nn.Linear(cfg.latent_dim, flat)
+        self.from_latent = _head([cfg.latent_dim, *hidden, flat])
 
         dec: list[nn.Module] = []
         for i in range(len(cfg.channels) - 1, -1, -1):
@@ -221,22 +285,36 @@ class PairAutoencoder(nn.Module):
         """d, the size of the code."""
         return self.cfg.latent_dim
 
+    def encoder_modules(self) -> tuple[nn.Module, ...]:
+        """The modules of :meth:`encode` (observation → code)."""
+        return (self.encoder_convs, self.encoder_blocks, self.to_latent, self.latent_norm)
+
+    def decoder_modules(self) -> tuple[nn.Module, ...]:
+        """The modules of :meth:`decode` (code → reconstruction)."""
+        return (self.from_latent, self.decoder_blocks, self.decoder_convs)
+
     def encode(self, x: Tensor) -> Tensor:
         """Pairs ``(B, 2, T, H, W)`` → latents ``(B, d)``."""
-        h = self.encoder_convs(x)
-        return self.latent_act(self.to_latent(h.flatten(1)))
+        h = self.encoder_blocks(self.encoder_convs(x))
+        return self.latent_act(self.latent_norm(self.to_latent(h.flatten(1))))
 
-    def decode(self, z: Tensor) -> Tensor:
-        """Latents ``(B, d)`` → reconstructed pairs ``(B, 2, T, H, W)`` in [0, 1]."""
+    def decode_logits(self, z: Tensor) -> Tensor:
+        """Latents ``(B, d)`` → reconstruction logits ``(B, 2, T, H, W)``."""
         h = F.relu(self.from_latent(z)).view(z.shape[0], *self.code_shape)
+        h = self.decoder_blocks(h)
         n = len(self.decoder_convs)
         for j, conv in enumerate(self.decoder_convs):
             # Mirror of encoder stage i = n-1-j: double H and W, then crop to the size that
             # stage received (2·ceil(k/2) exceeds an odd size k by one cell).
             t, hh, ww = self.stage_sizes[n - 1 - j]
             h = conv(h)[:, :, :t, :hh, :ww]
-            h = torch.sigmoid(h) if j == n - 1 else F.relu(h)
+            if j < n - 1:
+                h = F.relu(h)
         return h
+
+    def decode(self, z: Tensor) -> Tensor:
+        """Latents ``(B, d)`` → reconstructed pairs ``(B, 2, T, H, W)`` in [0, 1]."""
+        return torch.sigmoid(self.decode_logits(z))
 
     def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
         """Pairs ``(B, 2, T, H, W)`` → ``(reconstruction (B, 2, T, H, W), latent (B, d))``."""
@@ -302,9 +380,18 @@ class BottleneckNetwork(nn.Module):
 
     def decode(self, z: Tensor) -> Tensor:
         """Latents ``(B, 3, d)`` → reconstructed pairs ``(B, 3, 2, T, H, W)`` in [0, 1]."""
+        return torch.sigmoid(self.decode_logits(z))
+
+    def decode_logits(self, z: Tensor) -> Tensor:
+        """Latents ``(B, 3, d)`` → reconstruction logits ``(B, 3, 2, T, H, W)``."""
         b, k, _ = z.shape
-        r = self.autoencoder.decode(z.reshape(b * k, -1))
+        r = self.autoencoder.decode_logits(z.reshape(b * k, -1))
         return r.view(b, k, *r.shape[1:])
+
+    def forward_logits(self, x_noisy: Tensor) -> tuple[Tensor, Tensor]:
+        """Noisy observations ``(B, 4, T, H, W)`` → ``(logits (B, 3, 2, T, H, W), latents (B, 3, d))``."""
+        z = self.encode(x_noisy)
+        return self.decode_logits(z), z
 
     def forward(self, x_noisy: Tensor) -> tuple[Tensor, Tensor]:
         """Noisy observations ``(B, 4, T, H, W)`` → ``(recon, latents)``.

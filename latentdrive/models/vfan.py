@@ -140,7 +140,7 @@ class QNetwork(nn.Module):
             else:
                 # end-to-end: the Q-loss reaches the encoder half only.
                 ae = encoder.autoencoder
-                for part in (ae.from_latent, ae.decoder_convs):
+                for part in ae.decoder_modules():
                     part.requires_grad_(False)
             n_latent = encoder.latent_size
             body_input: tuple[int, int, int, int] = (n_latent, 1, 1, 1)
@@ -166,7 +166,7 @@ class QNetwork(nn.Module):
         enc = 0
         if self.encoder is not None:
             ae = self.encoder.autoencoder
-            enc = sum(p.numel() for m in (ae.encoder_convs, ae.to_latent) for p in m.parameters())
+            enc = sum(p.numel() for m in ae.encoder_modules() for p in m.parameters())
         return {"body": body, "encoder": enc, "trainable": sum(p.numel() for p in self.trainable_parameters())}
 
     @torch.no_grad()

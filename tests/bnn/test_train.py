@@ -18,12 +18,13 @@ from latentdrive.bnn import train as train_mod
 from latentdrive.bnn.batch import BNNBatch, array_batches_fn, iterate_batches, synthetic_dataset
 from latentdrive.bnn.checkpoint import CheckpointError, read_checkpoint
 from latentdrive.bnn.losses import (
+    CellWeights,
     LossKind,
+    cell_weights,
     reconstruction_error,
     reconstruction_loss,
     step_losses,
     vehicle_cells_l2,
-    weighted_l2,
 )
 from latentdrive.bnn.resume import check_resumable
 from latentdrive.bnn.train import BNNTrainConfig, load_trained_bottleneck, train_bnn
@@ -111,16 +112,35 @@ def test_loss_targets_the_clean_pairs(data: dict[str, np.ndarray]) -> None:
     torch.testing.assert_close(total, recon_part + 0.5 * reg)
 
 
+def _logit(p: torch.Tensor) -> torch.Tensor:
+    return torch.log(p / (1 - p))
+
+
 def test_foreground_weight_weighs_vehicle_cells_not_the_road() -> None:
     target = torch.zeros(1, 3, 2, 1, 1, 2)
-    recon = torch.zeros_like(target)
+    recon = torch.full_like(target, 1e-6)
     target[0, 0, 0, 0, 0, 0] = 1.0  # an HV cell, missed
     recon[0, 0, 0, 0, 0, 1] = 0.5   # a false HV cell
     target[0, 1, 0, 0, 0, 0] = 1.0  # a road cell, missed: weighs 1 whatever the weight
     # 12 cells: plain MSE (1 + 0.25 + 1) / 12; weight 9 on the one vehicle cell:
     # (9 + 0.25 + 1) / (12 + 8).
-    assert float(weighted_l2(recon, target)) == pytest.approx(2.25 / 12)
-    assert float(weighted_l2(recon, target, 9.0)) == pytest.approx(10.25 / 20)
+    logits = _logit(recon)
+    assert float(reconstruction_error(logits, target)) == pytest.approx(2.25 / 12, rel=1e-5)
+    assert float(reconstruction_error(logits, target, CellWeights(9.0))) == pytest.approx(10.25 / 20, rel=1e-5)
+
+
+def test_channel_weights_scale_the_road_and_each_av_copy() -> None:
+    target = torch.zeros(1, 3, 2, 1, 1, 1)
+    target[0, 0, 1] = 1.0  # the AV cell, seen in all three pairs
+    target[0, 1, 1] = 1.0
+    target[0, 2, 1] = 1.0
+    target[0, 1, 0] = 1.0  # the road
+    w = cell_weights(target, CellWeights(foreground=4.0, road=0.3, av_share=1 / 3))
+    expected = torch.tensor([[1.0, 4 / 3], [0.3, 4 / 3], [1.0, 4 / 3]]).view(1, 3, 2, 1, 1, 1)
+    torch.testing.assert_close(w, expected)
+    # Empty cells keep their channel weight; the road is never a vehicle cell.
+    empty = cell_weights(torch.zeros_like(target), CellWeights(foreground=4.0, road=0.3, av_share=0.5))
+    torch.testing.assert_close(empty.flatten(), torch.tensor([1.0, 0.5, 0.3, 0.5, 1.0, 0.5]))
 
 
 def test_bce_is_the_weighted_cross_entropy_of_the_cells() -> None:
@@ -128,16 +148,17 @@ def test_bce_is_the_weighted_cross_entropy_of_the_cells() -> None:
     target[0, 0, 0, 0, 0, 0] = 0.8  # an HV cell
     recon = torch.full_like(target, 0.1)
     recon[0, 0, 0, 0, 0, 0] = 0.6
+    logits = _logit(recon)
     # The HV cell: -(0.8 ln 0.6 + 0.2 ln 0.4); each of the 11 empty cells: -ln 0.9.
     hv = -(0.8 * math.log(0.6) + 0.2 * math.log(0.4))
     empty = -math.log(0.9)
-    assert float(reconstruction_error(recon, target, 1.0, "bce")) == pytest.approx((hv + 11 * empty) / 12)
-    assert float(reconstruction_error(recon, target, 5.0, "bce")) == pytest.approx((5 * hv + 11 * empty) / 16)
-    assert float(reconstruction_error(recon, target, 5.0, "l2")) == float(weighted_l2(recon, target, 5.0))
-    # Saturated outputs stay finite (log(0) is bounded).
-    assert torch.isfinite(reconstruction_error(torch.zeros_like(target), target, 1.0, "bce"))
+    assert float(reconstruction_error(logits, target, loss="bce")) == pytest.approx((hv + 11 * empty) / 12, rel=1e-5)
+    assert float(reconstruction_error(logits, target, CellWeights(5.0), "bce")) == pytest.approx(
+        (5 * hv + 11 * empty) / 16, rel=1e-5)
+    # Saturated logits stay finite.
+    assert torch.isfinite(reconstruction_error(torch.full_like(target, -200.0), target, loss="bce"))
     with pytest.raises(ValueError, match="loss"):
-        reconstruction_error(recon, target, 1.0, "l1")  # type: ignore[arg-type]
+        reconstruction_error(logits, target, loss="l1")  # type: ignore[arg-type]
 
 
 def test_bce_pushes_a_missing_vehicle_harder_than_l2() -> None:
@@ -148,10 +169,20 @@ def test_bce_pushes_a_missing_vehicle_harder_than_l2() -> None:
     grads = {}
     for kind in ("l2", "bce"):
         logit = torch.full_like(target, math.log(0.05 / 0.95), requires_grad=True)
-        reconstruction_error(torch.sigmoid(logit), target, 1.0, kind).backward()
+        reconstruction_error(logit, target, loss=kind).backward()  # type: ignore[arg-type]
         assert logit.grad is not None
         grads[kind] = float(logit.grad[0, 0, 0].abs().sum())
     assert grads["bce"] > 5 * grads["l2"]
+
+
+def test_the_loss_of_bf16_logits_is_computed_in_float32() -> None:
+    target = torch.zeros(2, 3, 2, 1, 2, 2)
+    target[:, 0, 0, 0, 0, 0] = 0.7
+    logits = torch.randn(target.shape, generator=torch.Generator().manual_seed(0))
+    half = reconstruction_error(logits.bfloat16(), target, CellWeights(5.0, 0.3, 1 / 3), "bce")
+    assert half.dtype == torch.float32
+    torch.testing.assert_close(half, reconstruction_error(logits, target, CellWeights(5.0, 0.3, 1 / 3), "bce"),
+                               rtol=2e-2, atol=1e-3)
 
 
 def test_vehicle_cells_l2_reads_the_hv_av_pair_only() -> None:
@@ -167,10 +198,10 @@ def test_train_step_uses_step_losses(
 ) -> None:
     seen: list[tuple[torch.Tensor, float]] = []
 
-    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0, fg: float = 1.0,
+    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0, w: CellWeights = CellWeights(),
             loss: LossKind = "l2"):
         seen.append((batch.clean, lam))
-        return step_losses(model, batch, lam, fg, loss)
+        return step_losses(model, batch, lam, w, loss)
 
     monkeypatch.setattr(train_mod, "step_losses", spy)
     train_fn, _ = _fns(data, 32, 16, stratify_from=1)
@@ -185,9 +216,14 @@ def test_train_step_uses_step_losses(
 # Training runs
 
 
+#: The paper's objective: plain L2 of every cell (eq. 11), constant learning rate.
+PAPER_OBJECTIVE = {"loss": "l2", "foreground_weight": 1.0, "foreground_weight_final": None, "road_weight": 1.0,
+                   "av_weight": 1.0, "lr_schedule": "constant", "val_every": 1}
+
+
 def test_tiny_run_learns_to_reconstruct(data: dict[str, np.ndarray], tmp_path: Path) -> None:
     cfg = _small_cfg(pretrain_epochs=6, mixed_epochs=4, batch_size=32, lambda_distance=0.0,
-                     log_every=5, val_mmd_samples=32)
+                     log_every=5, val_mmd_samples=32, **PAPER_OBJECTIVE)
     train_fn, val_fn = _fns(data, 320, 32, stratify_from=6)
     # The best constant guess, the mean training map, scores about 0.034.
     mean_map = channel_pairs(torch.from_numpy(data["clean"])).mean(0, keepdim=True)
@@ -213,11 +249,12 @@ def test_tiny_run_learns_to_reconstruct(data: dict[str, np.ndarray], tmp_path: P
     assert z.shape == (4, 3, 16)
 
 
-def test_same_seed_same_run(data: dict[str, np.ndarray], tmp_path: Path) -> None:
+@pytest.mark.parametrize("precision", ["fp32", "bf16"])
+def test_same_seed_same_run(data: dict[str, np.ndarray], tmp_path: Path, precision: str) -> None:
     train_fn, val_fn = _fns(data, 64, 16, stratify_from=1)
-    train_bnn(_small_cfg(), MODEL, train_fn, val_fn, tmp_path / "a", progress=False)
-    train_bnn(_small_cfg(), MODEL, train_fn, val_fn, tmp_path / "b", progress=False)
-    train_bnn(_small_cfg(seed=1), MODEL, train_fn, val_fn, tmp_path / "c", progress=False)
+    train_bnn(_small_cfg(precision=precision), MODEL, train_fn, val_fn, tmp_path / "a", progress=False)
+    train_bnn(_small_cfg(precision=precision), MODEL, train_fn, val_fn, tmp_path / "b", progress=False)
+    train_bnn(_small_cfg(seed=1, precision=precision), MODEL, train_fn, val_fn, tmp_path / "c", progress=False)
     assert _losses(tmp_path / "a") == _losses(tmp_path / "b")
     a, b, c = (_model_tensors(tmp_path / x) for x in "abc")
     assert all(torch.equal(a[k], b[k]) for k in a)
@@ -229,12 +266,13 @@ class _Interrupted(Exception):
     pass
 
 
-@pytest.mark.parametrize("schedule", ["constant", "cosine"])
+@pytest.mark.parametrize(("schedule", "precision"), [
+    ("constant", "fp32"), ("cosine", "fp32"), ("warmup_cosine", "fp32"), ("warmup_cosine", "bf16")])
 def test_resume_continues_to_the_same_result(
-    data: dict[str, np.ndarray], tmp_path: Path, schedule: str
+    data: dict[str, np.ndarray], tmp_path: Path, schedule: str, precision: str
 ) -> None:
     train_fn, val_fn = _fns(data, 64, 16, stratify_from=1)
-    cfg = _small_cfg(lr_schedule=schedule)
+    cfg = _small_cfg(lr_schedule=schedule, precision=precision, val_every=1)
     full = train_bnn(cfg, MODEL, train_fn, val_fn, tmp_path / "full", progress=False)
 
     def interrupted_fn(epoch: int) -> Iterator[BNNBatch]:
@@ -259,6 +297,9 @@ def test_resume_continues_to_the_same_result(
     assert full_t.keys() == res_t.keys()
     assert all(torch.equal(full_t[k], res_t[k]) for k in full_t)
     assert _losses(run) == _losses(tmp_path / "full")
+    best_full, _ = read_checkpoint(tmp_path / "full" / train_mod.BEST_NAME)
+    best_res, _ = read_checkpoint(run / train_mod.BEST_NAME)
+    assert all(torch.equal(best_full[k], best_res[k]) for k in best_full)
 
     # Resuming a finished run does no more work; extending the schedule continues it.
     again = train_bnn(cfg, MODEL, train_fn, val_fn, run, resume=True, progress=False)
@@ -371,7 +412,45 @@ def test_cosine_schedule_runs_from_lr_down_to_its_final_fraction() -> None:
     assert lrs[0] == pytest.approx(1e-3) and lrs[-1] == pytest.approx(1e-4)
     assert lrs[2] == pytest.approx(0.55e-3)  # halfway: the mean of the two ends
     assert all(a > b for a, b in itertools.pairwise(lrs))
-    assert BNNTrainConfig(lr=2e-3).epoch_lr(7) == 2e-3
+    assert BNNTrainConfig(lr=2e-3, lr_schedule="constant").epoch_lr(7) == 2e-3
+
+
+def test_warmup_cosine_is_set_per_step() -> None:
+    cfg = BNNTrainConfig(lr=1e-3, lr_schedule="warmup_cosine", warmup_fraction=0.1, lr_final_fraction=0.1)
+    lrs = [cfg.step_lr(s, 100) for s in range(100)]
+    # Ten warm-up steps up to lr, then down a half cosine to its final fraction.
+    assert lrs[0] == pytest.approx(1e-4) and lrs[9] == pytest.approx(1e-3)
+    assert all(a < b for a, b in itertools.pairwise(lrs[:10]))
+    assert all(a >= b for a, b in itertools.pairwise(lrs[9:]))
+    assert lrs[-1] == pytest.approx(1e-4)
+    # Past the end it stays at the final rate (a run resumed with fewer epochs).
+    assert cfg.step_lr(150, 100) == pytest.approx(1e-4)
+
+
+def test_vehicle_weight_falls_linearly_over_the_run() -> None:
+    cfg = BNNTrainConfig(foreground_weight=20.0, foreground_weight_final=5.0, road_weight=0.3, av_weight=0.5)
+    assert cfg.cell_weights(0, 11) == CellWeights(20.0, 0.3, 0.5)
+    assert cfg.cell_weights(5, 11).foreground == pytest.approx(12.5)
+    assert cfg.cell_weights(10, 11).foreground == pytest.approx(5.0)
+    assert BNNTrainConfig(foreground_weight=7.0, foreground_weight_final=None).cell_weights(10, 11).foreground == 7.0
+
+
+def test_training_follows_the_step_schedules(
+    data: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    seen: list[float] = []
+
+    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float, w: CellWeights, loss: LossKind):
+        seen.append(w.foreground)
+        return step_losses(model, batch, lam, w, loss)
+
+    monkeypatch.setattr(train_mod, "step_losses", spy)
+    train_fn, _ = _fns(data, 32, 16, stratify_from=1)  # two steps per epoch, six in all
+    cfg = _small_cfg(lambda_distance=0.0, log_every=1, foreground_weight=11.0, foreground_weight_final=1.0)
+    train_bnn(cfg, MODEL, train_fn, None, tmp_path / "run", progress=False)
+    assert seen == pytest.approx([11.0, 9.0, 7.0, 5.0, 3.0, 1.0])
+    logged = [float(r["lr"]) for r in _rows(tmp_path / "run") if r["kind"] == "step"]
+    assert logged == pytest.approx([cfg.step_lr(s, 6) for s in range(6)])
 
 
 def test_training_uses_the_scheduled_lr(data: dict[str, np.ndarray], tmp_path: Path) -> None:
@@ -421,3 +500,32 @@ def test_synthetic_dataset() -> None:
     assert not np.array_equal(clean, noisy)
     again = synthetic_dataset(12, SHAPE, 3, seed=5)
     assert np.array_equal(again[0], clean) and np.array_equal(again[1], noisy)
+
+
+def test_the_best_validated_weights_are_the_ones_loaded(
+    data: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Scores that fall after the first validation: the first validated epoch is the best.
+    scores = iter([0.9, 0.5, 0.7])
+    monkeypatch.setattr(train_mod, "validation_score", lambda m: next(scores))
+    train_fn, val_fn = _fns(data, 32, 16, stratify_from=1)
+    cfg = _small_cfg(pretrain_epochs=1, mixed_epochs=4, lambda_distance=0.0, val_every=2)
+    run = tmp_path / "run"
+    train_bnn(cfg, MODEL, train_fn, val_fn, run, progress=False)
+    epochs = [r for r in _rows(run) if r["kind"] == "epoch"]
+    # Validated after epochs 2 and 4 and after the last one (5).
+    validated = [i + 1 for i, r in enumerate(epochs) if r["val_loss"] not in ("", "nan")]
+    assert validated == [2, 4, 5]
+    best, meta = read_checkpoint(run / train_mod.BEST_NAME)
+    assert meta["epoch"] == 2
+    last, _ = read_checkpoint(run / "checkpoint.safetensors")
+    net = load_trained_bottleneck(run)
+    for name, t in net.state_dict().items():
+        assert torch.equal(t, best[f"model/{name}"])
+    assert any(not torch.equal(best[k], last[k]) for k in best)
+
+
+def test_validation_score_is_the_f1_of_recall_and_precision() -> None:
+    assert train_mod.validation_score({"val_vehicle_recall": 0.9, "val_vehicle_precision": 0.6}) == pytest.approx(0.72)
+    assert train_mod.validation_score({"val_vehicle_recall": float("nan"), "val_vehicle_precision": 0.6}) == -math.inf
+    assert train_mod.validation_score({"val_vehicle_recall": 0.0, "val_vehicle_precision": 0.0}) == -math.inf

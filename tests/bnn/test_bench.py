@@ -1,0 +1,31 @@
+"""``latentdrive bench --bottleneck``: one row per precision, rates from the run itself."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+
+from latentdrive.bnn.bench import bench_bottleneck, format_bottleneck_bench
+from latentdrive.models.bottleneck import BottleneckConfig
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+TINY = BottleneckConfig(input_shape=(2, 16, 32), latent_dim=8, channels=(4, 8), head_hidden=16)
+
+
+def test_one_row_per_precision_with_measured_rates() -> None:
+    rows = bench_bottleneck(TINY, batch_size=4, steps=2)
+    assert [r.precision for r in rows] == ["fp32", "bf16"]
+    for r in rows:
+        assert math.isfinite(r.network_samples_per_s) and r.network_samples_per_s > 0
+        assert math.isfinite(r.loop_samples_per_s) and r.loop_samples_per_s > 0
+    table = format_bottleneck_bench(rows, TINY, 1)
+    assert "| fp32 |" in table and "| bf16 |" in table
+    # The first row is the reference: its ratios are 1.
+    assert table.splitlines()[3].count("| 1.00 |") == 2
+
+
+def test_bad_sizes_are_refused() -> None:
+    with pytest.raises(ValueError, match="steps and batch_size"):
+        bench_bottleneck(TINY, batch_size=0, steps=2)
