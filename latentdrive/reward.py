@@ -48,8 +48,10 @@ def agent_rewards(
     speed_term = np.clip((np.asarray(speed, dtype=np.float64) - lo) / (hi - lo), 0.0, 1.0)
     # A crashed car is not rewarded for the speed it had when it hit something.
     speed_term = np.where(crashed, 0.0, speed_term)
+    # A crash on the step of arrival fails the episode: it must not pay the mission
+    # (collision + mission was +4 at the default weights, a reward for a failure).
     return (
         cfg.collision * (crashed & ~was_crashed)
         + cfg.speed * speed_term
-        + cfg.mission * (arrived & ~was_arrived)
+        + cfg.mission * (arrived & ~was_arrived & ~crashed)
     )

@@ -53,3 +53,14 @@ def test_episode_end_rule():
     assert episode_end(_scene([False, False], [True, True]), 3, spec) == (True, False)
     assert episode_end(_scene([False, False], [False, False]), spec.max_steps, spec) == (False, True)
     assert episode_end(_scene([True, False], [False, False]), spec.max_steps, spec) == (True, False)
+
+
+def test_a_crash_on_the_arrival_step_does_not_pay_the_mission():
+    # Regression: collision -1 plus mission 5 paid +4 for a failed episode.
+    cfg = RewardConfig(collision=-1.0, speed=0.2, mission=5.0)
+    both = np.array([True])
+    r = agent_rewards(np.array([30.0]), both, both, ~both, ~both, (20.0, 30.0), cfg)
+    assert r[0] == pytest.approx(-1.0)
+    # Arriving without a crash still pays the mission (and its speed term).
+    r = agent_rewards(np.array([30.0]), ~both, both, ~both, ~both, (20.0, 30.0), cfg)
+    assert r[0] == pytest.approx(5.2)

@@ -15,7 +15,10 @@ Body::
     Conv3d(c2 → c3, k=(kt, k3, k3))
     flatten → Linear(hidden) → Linear(n_actions)
 
-with ReLUs between, the layer pattern of the authors' Conv3D Q-net. Every kernel is
+with ReLUs between, the layer pattern of the authors' Conv3D Q-net. The dueling head
+(Wang et al., 2016) replaces the last two layers by a value stream
+``Linear(hidden) → Linear(1)`` and an advantage stream ``Linear(hidden) → Linear(n_actions)``
+and returns ``V + A − mean(A)``; the body's convolutions are the same. Every kernel is
 clipped to the extent of its input on each axis, so the same definition accepts any
 ``(C, T, H, W)``.
 
@@ -70,9 +73,14 @@ def _conv(c_in: int, c_out: int, size: tuple[int, int, int], kernel: tuple[int, 
 
 
 class VFANBody(nn.Module):
-    """The shared body: input ``(B, C, T, H, W)`` → Q-values ``(B, n_actions)``."""
+    """The shared body: input ``(B, C, T, H, W)`` → Q-values ``(B, n_actions)``.
 
-    def __init__(self, cfg: VFANConfig, input_shape: tuple[int, int, int, int], n_actions: int = N_ACTIONS) -> None:
+    With ``dueling`` the fully connected part is two streams, value and advantage
+    (see the module docstring); ``net`` then ends at the flattened convolution features.
+    """
+
+    def __init__(self, cfg: VFANConfig, input_shape: tuple[int, int, int, int], n_actions: int = N_ACTIONS,
+                 dueling: bool = False) -> None:
         super().__init__()
         c, *size_ = input_shape
         size = (size_[0], size_[1], size_[2])
@@ -84,23 +92,34 @@ class VFANBody(nn.Module):
         conv3, size = _conv(cfg.channels[1], cfg.channels[2], size, (kt, k3, k3), (1, 1, 1))
         flat = cfg.channels[2] * size[0] * size[1] * size[2]
         self.pointwise = input_shape[1:] == (1, 1, 1)
-        self.net = nn.Sequential(
-            conv1, nn.ReLU(), conv2, nn.ReLU(), conv3, nn.ReLU(), nn.Flatten(),
-            nn.Linear(flat, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, n_actions),
-        )
+        self.dueling = dueling
+        convs: list[nn.Module] = [conv1, nn.ReLU(), conv2, nn.ReLU(), conv3, nn.ReLU(), nn.Flatten()]
+        if dueling:
+            self.net = nn.Sequential(*convs)
+            self.value = nn.Sequential(nn.Linear(flat, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, 1))
+            self.advantage = nn.Sequential(nn.Linear(flat, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, n_actions))
+        else:
+            # One Sequential, as before the dueling option: its parameter names are those
+            # of every checkpoint trained without it.
+            self.net = nn.Sequential(*convs, nn.Linear(flat, cfg.hidden), nn.ReLU(), nn.Linear(cfg.hidden, n_actions))
 
     def forward(self, x: Tensor) -> Tensor:
         if not self.pointwise:
-            return self.net(x)
-        # A 1×1×1 volume: each convolution is exactly a dense layer over the channels;
-        # computing it as one skips the 3D-convolution machinery (same parameters, same math).
-        h = x.flatten(1)
-        for layer in self.net:
-            if isinstance(layer, nn.Conv3d):
-                h = F.linear(h, layer.weight.flatten(1), layer.bias)
-            elif not isinstance(layer, nn.Flatten):
-                h = layer(h)
-        return h
+            h = self.net(x)
+        else:
+            # A 1×1×1 volume: each convolution is exactly a dense layer over the channels;
+            # computing it as one skips the 3D-convolution machinery (same parameters, same math).
+            h = x.flatten(1)
+            for layer in self.net:
+                if isinstance(layer, nn.Conv3d):
+                    h = F.linear(h, layer.weight.flatten(1), layer.bias)
+                elif not isinstance(layer, nn.Flatten):
+                    h = layer(h)
+        if not self.dueling:
+            return h
+        adv = self.advantage(h)
+        # Subtracting the mean advantage makes V and A identifiable without moving the argmax.
+        return self.value(h) + adv - adv.mean(dim=1, keepdim=True)
 
 
 class QNetwork(nn.Module):
@@ -118,10 +137,11 @@ class QNetwork(nn.Module):
         observation_shape: ``(4, T, H, W)``.
         encoder: the bottleneck network (latent modes and end-to-end); its parameters are
             frozen in the latent modes and trained in end-to-end.
+        dueling: a dueling head (value and advantage streams) instead of one output layer.
     """
 
     def __init__(self, cfg: VFANConfig, mode: Mode, observation_shape: tuple[int, int, int, int],
-                 encoder: BottleneckNetwork | None = None) -> None:
+                 encoder: BottleneckNetwork | None = None, dueling: bool = False) -> None:
         super().__init__()
         if mode not in MODES:
             raise ValueError(f"unknown mode {mode!r}: choose one of {', '.join(MODES)}")
@@ -146,7 +166,7 @@ class QNetwork(nn.Module):
             body_input: tuple[int, int, int, int] = (n_latent, 1, 1, 1)
         else:
             body_input = observation_shape
-        self.body = VFANBody(cfg, body_input)
+        self.body = VFANBody(cfg, body_input, dueling=dueling)
 
     @property
     def stored_shape(self) -> tuple[int, ...]:
@@ -161,7 +181,7 @@ class QNetwork(nn.Module):
         return [p for p in self.parameters() if p.requires_grad]
 
     def parameter_count(self) -> dict[str, int]:
-        """Parameters of the body, of the encoder part that feeds it, and trainable in all."""
+        """Parameters of the body (with its head), of the encoder part that feeds it, and trainable in all."""
         body = sum(p.numel() for p in self.body.parameters())
         enc = 0
         if self.encoder is not None:

@@ -9,6 +9,10 @@ For each mode it runs the real training loop (:func:`latentdrive.rl.train.learne
   encoding observations (the frozen encoder in latent modes), and learning; the rest is
   replay writing, action selection and bookkeeping.
 
+Each mode runs in fp32 and, where the run's ``precision`` resolves to bf16 on the device
+(``--set precision=bf16``, or ``auto`` on a CPU with bf16 matrix units or on CUDA), in bf16
+too, one after the other in the same process, so their ratio is measured in one run.
+
 ``latent`` and ``latent-random`` differ only in the encoder's weights, not in cost, so
 without a BNN run the bench measures ``latent`` with an untrained encoder of the default
 architecture and says so.
@@ -21,11 +25,13 @@ from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
 from typing import Any
 
+import torch
+
 from latentdrive.config import merge_overrides, validate
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import build_network, encoder_config
 from latentdrive.rl.train import Learner, learner_steps
-from latentdrive.runtime import resolve_device, torch_settings
+from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
 from latentdrive.vec import make_vec
 
 __all__ = ["TrainBenchRow", "bench_training", "format_train_bench"]
@@ -51,6 +57,8 @@ class TrainBenchRow:
     runs: int = 1
     transitions_per_s_min: float | None = None
     transitions_per_s_max: float | None = None
+    #: The compute precision of the forward passes: 'fp32' or 'bf16'.
+    precision: str = "fp32"
 
     @property
     def other(self) -> float:
@@ -89,15 +97,16 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> Train
         ups = updates / (time.perf_counter() - t0)
         vec.close()
     return TrainBenchRow(mode=cfg.mode, device=str(device), trainable_parameters=net.parameter_count()["trainable"],
-                         updates_per_s=ups, transitions_per_s=done / wall, env_steps_per_s=vsteps * cfg.envs / wall,
+                         precision="bf16" if learner.dtype == torch.bfloat16 else "fp32", updates_per_s=ups, transitions_per_s=done / wall, env_steps_per_s=vsteps * cfg.envs / wall,
                          simulate=share["simulate"], render=share["render"], encode=share["encode"], learn=share["learn"])
 
 
 def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transitions: int = 2000, updates: int = 50,
                    envs: int = 16, bnn: str | None = None, overrides: dict[str, Any] | None = None,
                    progress: Callable[[str], None] | None = None, repeat: int = 1) -> list[TrainBenchRow]:
-    """One row per mode; with ``repeat`` > 1 each mode runs that many times and its row is
-    the median run, with the range of agent-transitions/s beside it."""
+    """One row per mode and precision (fp32, and the run's precision where it resolves to
+    bf16); with ``repeat`` > 1 each runs that many times and its row is the median run,
+    with the range of agent-transitions/s beside it."""
     if repeat < 1:
         raise ValueError(f"repeat must be at least 1, got {repeat}")
     rows = []
@@ -108,31 +117,46 @@ def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transition
             data["bnn"] = bnn
             if not bnn:
                 data["mode"] = "latent-random"
-        cfg = validate(PolicyTrainConfig, merge_overrides(data, overrides or {}))
-        runs = []
-        for _ in range(repeat):
-            runs.append(_bench_mode(cfg, transitions, updates))
-            if progress:
-                progress(f"  {mode}: {runs[-1].transitions_per_s:.0f} agent-transitions/s")
-        rates = sorted(r.transitions_per_s for r in runs)
-        # The median run (the lower middle one for an even count) speaks for the mode.
-        row = next(r for r in runs if r.transitions_per_s == rates[(len(rates) - 1) // 2])
-        rows.append(TrainBenchRow(**{**asdict(row), "mode": mode if bnn or mode != "latent" else "latent (untrained encoder)",
-                                     "runs": repeat, "transitions_per_s_min": rates[0],
-                                     "transitions_per_s_max": rates[-1]}))
+        chosen = validate(PolicyTrainConfig, merge_overrides(data, overrides or {}))
+        precisions = ["fp32"]
+        if resolve_precision(chosen.precision, resolve_device(chosen.device)) == torch.bfloat16:
+            precisions.append("bf16")
+        for precision in precisions:
+            cfg = chosen.replace(precision=precision)
+            runs = []
+            for _ in range(repeat):
+                runs.append(_bench_mode(cfg, transitions, updates))
+                if progress:
+                    progress(f"  {mode} {precision}: {runs[-1].transitions_per_s:.0f} agent-transitions/s")
+            rates = sorted(r.transitions_per_s for r in runs)
+            # The median run (the lower middle one for an even count) speaks for the mode.
+            row = next(r for r in runs if r.transitions_per_s == rates[(len(rates) - 1) // 2])
+            rows.append(TrainBenchRow(**{**asdict(row), "mode": mode if bnn or mode != "latent" else "latent (untrained encoder)",
+                                         "runs": repeat, "transitions_per_s_min": rates[0],
+                                         "transitions_per_s_max": rates[-1]}))
     return rows
 
 
 def format_train_bench(rows: list[TrainBenchRow], envs: int, threads: int) -> str:
     head = (f"training loop on the fast backend, {envs} envs, torch threads {threads}; shares of end-to-end wall time\n"
-            f"{'mode':<28}{'device':>7}{'params':>10}{'updates/s':>11}{'agent-tr/s':>12}{'env steps/s':>13}"
+            f"{'mode':<28}{'device':>7}{'prec':>6}{'params':>10}{'updates/s':>11}{'agent-tr/s':>12}{'env steps/s':>13}"
             f"{'vs authors':>12}{'sim':>6}{'render':>8}{'encode':>8}{'learn':>7}{'other':>7}")
     lines = [head]
     for r in rows:
         lines.append(
-            f"{r.mode:<28}{r.device:>7}{r.trainable_parameters:>10}{r.updates_per_s:>11.1f}{r.transitions_per_s:>12.0f}"
+            f"{r.mode:<28}{r.device:>7}{r.precision:>6}{r.trainable_parameters:>10}{r.updates_per_s:>11.1f}{r.transitions_per_s:>12.0f}"
             f"{r.env_steps_per_s:>13.0f}{r.env_steps_per_s / AUTHORS_ENV_STEPS_PER_S:>11.0f}x"
             f"{100 * r.simulate:>5.0f}%{100 * r.render:>7.0f}%{100 * r.encode:>7.0f}%{100 * r.learn:>6.0f}%{100 * r.other:>6.0f}%")
+    fp32 = {r.mode: r for r in rows if r.precision == "fp32"}
+    for r in rows:
+        base = fp32.get(r.mode)
+        if r.precision != "fp32" and base is not None:
+            lines.append(f"{r.mode}: {r.precision} over fp32 in this run: agent-transitions/s "
+                         f"{r.transitions_per_s / base.transitions_per_s:.2f}x, updates/s "
+                         f"{r.updates_per_s / base.updates_per_s:.2f}x")
+    if not any(r.precision != "fp32" for r in rows):
+        lines.append("precision: fp32 only (the run's precision resolves to fp32 on this device; "
+                     "--set precision=bf16 measures bf16 beside it)")
     for r in rows:
         if r.runs > 1:
             lines.append(f"{r.mode}: the median of {r.runs} runs; agent-transitions/s ranged "

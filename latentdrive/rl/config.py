@@ -9,7 +9,7 @@ from pydantic import Field, field_validator, model_validator
 from latentdrive.config import Config, ConfigError, ObservationConfig
 from latentdrive.models.vfan import MODES, Mode, VFANConfig
 from latentdrive.rl.dqn import DQNConfig
-from latentdrive.runtime import check_device
+from latentdrive.runtime import PRECISIONS, Precision, check_device
 from latentdrive.scenarios import RewardConfig, check_scenario_names
 
 __all__ = ["PolicyTrainConfig", "check_mission_pays"]
@@ -34,6 +34,7 @@ class PolicyTrainConfig(Config):
     eval_every: int = Field(2, ge=0, description="Evaluate on held-out seeds every this many segments, and at the end (0: only at the end).")
     eval_episodes: int = Field(30, ge=1, le=100_000, description="Evaluation episodes per scenario at each periodic evaluation.")
     device: str = Field("auto", description="'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'.")
+    precision: Precision = Field("auto", description=f"Compute precision of the networks' forward passes while training and acting ({', '.join(PRECISIONS)}): bf16 autocast, or fp32; 'auto' is bf16 on CUDA and on CPUs with bf16 matrix units (AMX-BF16, AVX512-BF16), fp32 elsewhere. Covers the learner's updates, the frozen encoder's inference (latent modes), end-to-end training and acting; weights, optimizer state, targets and losses stay fp32.")
     threads: int = Field(1, ge=0, le=1024, description="CPU threads for torch (0: torch's default). One avoids oversubscribing the cores the simulator also uses; results are only bitwise reproducible at the same count.")
 
     @field_validator("scenarios")

@@ -7,6 +7,9 @@ yields up to ``num_envs · n_av`` transitions.
 
 from __future__ import annotations
 
+from fractions import Fraction
+from typing import Any, NamedTuple
+
 import torch
 import torch.nn.functional as F
 from pydantic import Field, model_validator
@@ -14,8 +17,13 @@ from torch import Tensor, nn
 
 from latentdrive.config import Config
 from latentdrive.rl.replay import Batch
+from latentdrive.runtime import autocast
 
-__all__ = ["DQNConfig", "epsilon", "td_targets", "update"]
+__all__ = ["DQNConfig", "UpdateStats", "epsilon", "priority_beta", "soft_update", "td_targets", "update",
+           "updates_owed"]
+
+#: Largest denominator of ``updates_per_transition`` (the ratio is kept as an exact fraction).
+MAX_RATIO_DENOMINATOR = 1024
 
 
 class DQNConfig(Config):
@@ -26,20 +34,53 @@ class DQNConfig(Config):
     batch_size: int = Field(32, ge=1, le=4096, description="Transitions per update (the authors' 32).")
     buffer_size: int = Field(100_000, ge=100, le=5_000_000, description="Transitions kept in replay.")
     learning_starts: int = Field(2_000, ge=0, description="Agent-transitions collected before the first update.")
-    train_every: int = Field(8, ge=1, le=4096, description="Agent-transitions per learner update (the replay ratio is batch_size / train_every).")
-    target_update: int = Field(500, ge=1, description="Learner updates between hard copies of the online network into the target network.")
+    updates_per_transition: float = Field(0.125, gt=0.0, le=64.0, description=f"Learner updates per agent-transition (the replay ratio is batch_size × this): 0.125 is one update per 8 agent-transitions, 2 two updates per agent-transition. Kept as an exact fraction with a denominator up to {MAX_RATIO_DENOMINATOR}. Older configs' train_every: k means 1/k.")
+    n_step: int = Field(1, ge=1, le=64, description="Policy steps per return: the target sums n discounted rewards and bootstraps from the observation n steps later, discounted by γ^n. It stops at the agent's own terminal step (crash, mission completed: no bootstrap); where the agent is cut off (another AV crashed, time ran out, the segment ended) it bootstraps from the observation at the cut, discounted by γ^k for the k steps taken.")
+    target_update: int = Field(500, ge=1, description="Learner updates between hard copies of the online network into the target network (used when tau is 0).")
+    tau: float = Field(0.0, ge=0.0, le=1.0, description="Polyak rate of soft target updates: after every learner update the target network moves this share of the way to the online one (0: hard copies every target_update updates instead).")
     double: bool = Field(True, description="Double DQN: the online network picks the next action, the target network values it.")
+    dueling: bool = Field(False, description="Dueling head: separate value and advantage streams (each as wide as vfan.hidden), Q = V + A − mean(A).")
+    prioritized: bool = Field(False, description="Proportional prioritized replay: sample transitions in proportion to (|TD error| + priority_eps)^priority_alpha, with importance weights.")
+    priority_alpha: float = Field(0.6, ge=0.0, le=1.0, description="Priority exponent of prioritized replay (0: uniform).")
+    priority_beta: float = Field(0.4, ge=0.0, le=1.0, description="Importance-weight exponent at the first update; annealed linearly to 1 over the transition budget.")
+    priority_eps: float = Field(1e-6, gt=0.0, le=1.0, description="Added to |TD error| (reward units) so that no transition's priority is 0.")
     huber_delta: float = Field(1.0, gt=0.0, description="Huber loss threshold (TD error units).")
     grad_clip: float = Field(10.0, gt=0.0, description="Maximum global gradient norm.")
     eps_start: float = Field(1.0, ge=0.0, le=1.0, description="ε of ε-greedy exploration at the first transition.")
     eps_end: float = Field(0.05, ge=0.0, le=1.0, description="ε after the decay.")
     eps_fraction: float = Field(0.3, gt=0.0, le=1.0, description="Share of the transition budget over which ε decays linearly.")
 
+    @model_validator(mode="before")
+    @classmethod
+    def _train_every(cls, data: Any) -> Any:
+        """Configs written before the replay ratio was a fraction name ``train_every``
+        (agent-transitions per update): ``train_every: k`` is ``updates_per_transition: 1/k``."""
+        if isinstance(data, dict) and "train_every" in data:
+            data = dict(data)
+            k = data.pop("train_every")
+            if "updates_per_transition" in data:
+                raise ValueError("give updates_per_transition or the older train_every, not both")
+            if not isinstance(k, int) or isinstance(k, bool) or not 1 <= k <= 4096:
+                raise ValueError(f"train_every must be a whole number of agent-transitions in [1, 4096], got {k!r}")
+            data["updates_per_transition"] = 1.0 / k
+        return data
+
     @model_validator(mode="after")
-    def _check_eps(self) -> DQNConfig:
+    def _check(self) -> DQNConfig:
         if self.eps_end > self.eps_start:
             raise ValueError(f"eps_end={self.eps_end} exceeds eps_start={self.eps_start}")
+        ratio = Fraction(self.updates_per_transition).limit_denominator(MAX_RATIO_DENOMINATOR)
+        if abs(float(ratio) - self.updates_per_transition) > 1e-9 * self.updates_per_transition:
+            raise ValueError(f"updates_per_transition={self.updates_per_transition} is no fraction p/q with "
+                             f"q ≤ {MAX_RATIO_DENOMINATOR} (e.g. 0.125, 0.5, 1, 2)")
         return self
+
+
+def updates_owed(cfg: DQNConfig, transitions: int) -> int:
+    """Learner updates due after ``transitions`` agent-transitions: none before
+    ``learning_starts``, then ``updates_per_transition`` per transition, counted exactly."""
+    ratio = Fraction(cfg.updates_per_transition).limit_denominator(MAX_RATIO_DENOMINATOR)
+    return max(0, (transitions - cfg.learning_starts) * ratio.numerator // ratio.denominator)
 
 
 def epsilon(cfg: DQNConfig, transitions: int, budget: int) -> float:
@@ -48,9 +89,16 @@ def epsilon(cfg: DQNConfig, transitions: int, budget: int) -> float:
     return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
 
 
+def priority_beta(cfg: DQNConfig, transitions: int, budget: int) -> float:
+    """The importance-weight exponent after ``transitions`` of a ``budget``: from
+    ``priority_beta`` linearly to 1 at the end of the budget."""
+    frac = min(1.0, transitions / max(1, budget))
+    return cfg.priority_beta + frac * (1.0 - cfg.priority_beta)
+
+
 def td_targets(reward: Tensor, bootstrap: Tensor, q_next_online: Tensor, q_next_target: Tensor,
-               gamma: float, double: bool) -> Tensor:
-    """One-step TD targets ``(B,)``.
+               gamma: float, double: bool, steps: Tensor | None = None) -> Tensor:
+    """TD targets ``(B,)``: ``reward + γ^steps · bootstrap · Q_target(next, a*)``.
 
     ``bootstrap`` is 0 only where the agent itself terminated (crashed or completed its
     mission). An agent cut off because the episode ended for someone else, or because
@@ -59,30 +107,61 @@ def td_targets(reward: Tensor, bootstrap: Tensor, q_next_online: Tensor, q_next_
     truncation bug).
 
     Args:
-        reward, bootstrap: ``(B,)``.
+        reward, bootstrap: ``(B,)``; ``reward`` is the discounted sum over ``steps``.
         q_next_online, q_next_target: ``(B, n_actions)`` Q-values of the next observation
             under the online and target networks.
+        steps: ``(B,)`` policy steps from the observation to the next one (n-step
+            returns); 1 everywhere when None.
     """
     if double:
         best = q_next_online.argmax(dim=1, keepdim=True)
         q_next = q_next_target.gather(1, best).squeeze(1)
     else:
         q_next = q_next_target.max(dim=1).values
-    return reward + gamma * bootstrap * q_next
+    discount = gamma if steps is None else torch.pow(torch.tensor(gamma, dtype=q_next.dtype), steps)
+    return reward + discount * bootstrap * q_next
+
+
+class UpdateStats(NamedTuple):
+    loss: float
+    #: (B,) |TD error| of each sampled transition (for prioritized replay), fp32, detached.
+    td_error: Tensor
 
 
 def update(online: nn.Module, target: nn.Module, optimizer: torch.optim.Optimizer, batch: Batch,
-           cfg: DQNConfig) -> float:
-    """One gradient step on ``batch``; returns the loss."""
-    with torch.no_grad():
-        q_target_next = target(batch.next_obs)
-        q_online_next = online(batch.next_obs) if cfg.double else q_target_next
-        y = td_targets(batch.reward, batch.bootstrap, q_online_next, q_target_next, cfg.gamma, cfg.double)
-    q = online(batch.obs).gather(1, batch.action[:, None]).squeeze(1)
-    loss = F.huber_loss(q, y, delta=cfg.huber_delta)
+           cfg: DQNConfig, dtype: torch.dtype = torch.float32) -> UpdateStats:
+    """One gradient step on ``batch``.
+
+    Forward passes run in ``dtype`` (bf16 autocast, or fp32); targets, TD errors and the
+    loss are computed in fp32. With importance weights (``batch.weight``) each sample's
+    Huber loss is weighted before the mean.
+    """
+    device = batch.obs.device
+    with torch.no_grad(), autocast(dtype, device):
+        q_target_next = target(batch.next_obs).float()
+        q_online_next = online(batch.next_obs).float() if cfg.double else q_target_next
+    y = td_targets(batch.reward, batch.bootstrap, q_online_next, q_target_next, cfg.gamma, cfg.double, batch.steps)
+    with autocast(dtype, device):
+        q_all = online(batch.obs)
+    q = q_all.float().gather(1, batch.action[:, None]).squeeze(1)
+    if batch.weight is None:
+        loss = F.huber_loss(q, y, delta=cfg.huber_delta)
+    else:
+        loss = (F.huber_loss(q, y, delta=cfg.huber_delta, reduction="none") * batch.weight).mean()
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     params = [p for g in optimizer.param_groups for p in g["params"]]
     nn.utils.clip_grad_norm_(params, cfg.grad_clip)
     optimizer.step()
-    return float(loss.detach())
+    return UpdateStats(float(loss.detach()), (q.detach() - y).abs())
+
+
+@torch.no_grad()
+def soft_update(target: nn.Module, online: nn.Module, tau: float) -> None:
+    """Polyak averaging: every trainable parameter of ``target`` moves ``tau`` of the way to
+    ``online``'s; frozen parameters (a frozen encoder) are equal in both and stay."""
+    theirs = dict(online.named_parameters())
+    for name, p in target.named_parameters():
+        src = theirs[name]
+        if src.requires_grad:
+            p.lerp_(src, tau)

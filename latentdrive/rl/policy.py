@@ -25,6 +25,7 @@ from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rollout import Policy, PolicyInput
+from latentdrive.runtime import autocast
 from latentdrive.scenarios import get_spec
 
 __all__ = [
@@ -77,7 +78,7 @@ def build_network(cfg: PolicyTrainConfig, encoder_cfg: BottleneckConfig | None,
             encoder = load_trained_bottleneck(cfg.bnn)
         else:
             encoder = BottleneckNetwork(encoder_cfg)
-    return QNetwork(cfg.vfan, cfg.mode, cfg.observation.shape, encoder)
+    return QNetwork(cfg.vfan, cfg.mode, cfg.observation.shape, encoder, dueling=cfg.dqn.dueling)
 
 
 class FeatureCache:
@@ -90,8 +91,8 @@ class FeatureCache:
     until some caller needs them).
     """
 
-    def __init__(self, net: QNetwork, device: torch.device) -> None:
-        self.net, self.device = net, device
+    def __init__(self, net: QNetwork, device: torch.device, dtype: torch.dtype = torch.float32) -> None:
+        self.net, self.device, self.dtype = net, device, dtype
         self._key: NDArray[np.float32] | None = None
         self._value: torch.Tensor | None = None
         self._have: NDArray[np.bool_] | None = None
@@ -112,7 +113,7 @@ class FeatureCache:
         if missing.any():
             t0 = time.perf_counter()
             ei, ai = np.nonzero(missing)
-            self._value[ei, ai] = self.net.features(torch.from_numpy(obs[ei, ai]).to(self.device))
+            self._value[ei, ai] = self._features(obs[ei, ai])
             self._have |= missing
             self.seconds += time.perf_counter() - t0
         return self._value
@@ -120,16 +121,22 @@ class FeatureCache:
     def encode(self, obs: NDArray[np.float32]) -> torch.Tensor:
         """Features of observations ``(k, 4, T, H, W)`` outside the cache."""
         t0 = time.perf_counter()
-        out = self.net.features(torch.from_numpy(obs).to(self.device))
+        out = self._features(obs)
         self.seconds += time.perf_counter() - t0
         return out
 
+    def _features(self, obs: NDArray[np.float32]) -> torch.Tensor:
+        """The network's features of ``obs`` in the cache's precision, returned as fp32."""
+        with autocast(self.dtype, self.device):
+            return self.net.features(torch.from_numpy(obs).to(self.device)).float()
 
-def q_values(net: QNetwork, feats: torch.Tensor) -> torch.Tensor:
-    """Q-values ``(num_envs, n_av, n_actions)`` of features ``(num_envs, n_av, ...)``."""
-    with torch.no_grad():
+
+def q_values(net: QNetwork, feats: torch.Tensor, dtype: torch.dtype = torch.float32) -> torch.Tensor:
+    """Q-values ``(num_envs, n_av, n_actions)`` fp32 of features ``(num_envs, n_av, ...)``,
+    computed in ``dtype`` (bf16 autocast or fp32)."""
+    with torch.no_grad(), autocast(dtype, feats.device):
         flat = feats.reshape(-1, *feats.shape[2:])
-        return net(flat).reshape(*feats.shape[:2], -1)
+        return net(flat).float().reshape(*feats.shape[:2], -1)
 
 
 def epsilon_greedy(net: QNetwork, cache: FeatureCache, rng: np.random.Generator,
@@ -138,7 +145,7 @@ def epsilon_greedy(net: QNetwork, cache: FeatureCache, rng: np.random.Generator,
     whoever is active, so the stream does not depend on the episodes' course."""
 
     def policy(inp: PolicyInput) -> NDArray[np.int64]:
-        greedy = q_values(net, cache(inp.obs, inp.active)).argmax(dim=-1).cpu().numpy()
+        greedy = q_values(net, cache(inp.obs, inp.active), cache.dtype).argmax(dim=-1).cpu().numpy()
         explore = rng.random(greedy.shape) < eps()
         random = rng.integers(0, N_ACTIONS, size=greedy.shape)
         return np.where(explore, random, greedy).astype(np.int64)
@@ -146,14 +153,14 @@ def epsilon_greedy(net: QNetwork, cache: FeatureCache, rng: np.random.Generator,
     return policy
 
 
-def greedy_policy(net: QNetwork, device: torch.device) -> Callable[[], Policy]:
-    """A factory of the network's greedy policy (for evaluation)."""
+def greedy_policy(net: QNetwork, device: torch.device, dtype: torch.dtype = torch.float32) -> Callable[[], Policy]:
+    """A factory of the network's greedy policy (for evaluation), computed in ``dtype``."""
 
     def make() -> Policy:
-        cache = FeatureCache(net, device)
+        cache = FeatureCache(net, device, dtype)
 
         def policy(inp: PolicyInput) -> NDArray[np.int64]:
-            return q_values(net, cache(inp.obs, inp.active)).argmax(dim=-1).cpu().numpy().astype(np.int64)
+            return q_values(net, cache(inp.obs, inp.active), dtype).argmax(dim=-1).cpu().numpy().astype(np.int64)
 
         return policy
 

@@ -15,17 +15,23 @@ Transitions refer to observations by id. An observation store keeps them in a ri
 
 Ids count every observation ever added; slot ``id % capacity`` holds it while
 ``id >= added - capacity``.
+
+A transition may span ``k`` policy steps (n-step returns, :mod:`latentdrive.rl.nstep`):
+its reward is then the discounted sum of ``k`` rewards and its bootstrap is discounted by
+``γ^k``. With ``prioritized`` the replay samples in proportion to priorities
+(:mod:`latentdrive.rl.priority`) and gives each sample its importance weight.
 """
 
 from __future__ import annotations
 
-from typing import NamedTuple, Protocol
+from typing import ClassVar, NamedTuple, Protocol
 
 import numpy as np
 import torch
 from numpy.typing import NDArray
 
 from latentdrive.data.shards import dequantize, quantize
+from latentdrive.rl.priority import SumTree
 
 __all__ = ["Batch", "FrameStore", "LatentStore", "ObservationStore", "Replay"]
 
@@ -41,6 +47,12 @@ class Batch(NamedTuple):
     next_obs: torch.Tensor  # (B, *stored_shape)
     #: (B,) float32: 0 where the agent terminated (crash or mission done), else 1.
     bootstrap: torch.Tensor
+    #: (B,) float32: policy steps k the transition spans; its bootstrap is discounted by γ^k.
+    steps: torch.Tensor | None = None
+    #: (B,) float32 importance weights (prioritized replay), or None: all equal.
+    weight: torch.Tensor | None = None
+    #: (B,) the sampled replay slots (to update their priorities), or None.
+    slots: NDArray[np.int64] | None = None
 
 
 class ObservationStore(Protocol):
@@ -141,6 +153,10 @@ class Replay:
 
     Args:
         capacity: transitions kept.
+        prioritized: sample in proportion to ``priority^alpha`` (proportional prioritized
+            replay); otherwise uniformly.
+        alpha: the priority exponent (0: uniform).
+        priority_eps: added to |TD error| so that no transition's priority is 0.
         store: where the observations live. Every transition adds one observation (its
             next) and every ended episode ``n_av`` more (the new episode's first), at most
             one per transition over the replay's span plus one step's worth, and a stack
@@ -148,7 +164,8 @@ class Replay:
             ``2·capacity + (2T + 1)·agents`` frames (``agents`` = envs × AVs).
     """
 
-    def __init__(self, capacity: int, store: ObservationStore) -> None:
+    def __init__(self, capacity: int, store: ObservationStore, *, prioritized: bool = False, alpha: float = 0.6,
+                 priority_eps: float = 1e-6) -> None:
         self.capacity = int(capacity)
         self.store = store
         self.added = 0
@@ -157,12 +174,17 @@ class Replay:
         self.action = np.zeros(self.capacity, dtype=np.int64)
         self.reward = np.zeros(self.capacity, dtype=np.float32)
         self.terminated = np.zeros(self.capacity, dtype=bool)
+        self.steps = np.ones(self.capacity, dtype=np.int64)
+        self.alpha, self.priority_eps = float(alpha), float(priority_eps)
+        self.tree = SumTree(self.capacity) if prioritized else None
+        self.max_priority = 1.0  # of priority^alpha: what a new transition gets
 
     def __len__(self) -> int:
         return min(self.added, self.capacity)
 
     def add(self, obs_id: IntArray, action: IntArray, reward: NDArray[np.floating], next_id: IntArray,
-            terminated: NDArray[np.bool_]) -> None:
+            terminated: NDArray[np.bool_], steps: IntArray | None = None) -> None:
+        """Store ``k`` transitions (every argument ``(k,)``); ``steps``: policy steps each spans (1 when None)."""
         k = len(obs_id)
         slots = (self.added + np.arange(k)) % self.capacity
         self.obs_id[slots] = obs_id
@@ -170,22 +192,46 @@ class Replay:
         self.action[slots] = action
         self.reward[slots] = reward
         self.terminated[slots] = terminated
+        self.steps[slots] = 1 if steps is None else steps
+        if self.tree is not None and k:
+            self.tree.set(slots, np.full(k, self.max_priority))
         self.added += k
 
-    def sample(self, rng: np.random.Generator, batch_size: int, device: torch.device | str = "cpu") -> Batch:
-        """``batch_size`` transitions drawn uniformly with replacement."""
+    def sample(self, rng: np.random.Generator, batch_size: int, device: torch.device | str = "cpu",
+               beta: float = 1.0) -> Batch:
+        """``batch_size`` transitions drawn with replacement: uniformly, or (prioritized) in
+        proportion to their priority, with importance weights ``(N·P(i))^-beta`` divided by
+        the batch's largest."""
         if len(self) == 0:
             raise ValueError("cannot sample from an empty replay")
-        idx = rng.integers(0, len(self), size=batch_size)
+        weight = None
+        if self.tree is None:
+            idx = rng.integers(0, len(self), size=batch_size)
+        else:
+            idx = self.tree.sample(rng, batch_size, len(self))
+            p = self.tree.leaves(len(self))[idx] / self.tree.total
+            w = (len(self) * p) ** -beta
+            weight = torch.from_numpy((w / w.max()).astype(np.float32)).to(device)
         obs = self.store.get(self.obs_id[idx])
         nxt = self.store.get(self.next_id[idx])
         return Batch(
             torch.from_numpy(obs).to(device), torch.from_numpy(self.action[idx]).to(device),
             torch.from_numpy(self.reward[idx]).to(device), torch.from_numpy(nxt).to(device),
             torch.from_numpy((~self.terminated[idx]).astype(np.float32)).to(device),
+            torch.from_numpy(self.steps[idx].astype(np.float32)).to(device), weight, idx,
         )
 
-    _ARRAYS = ("obs_id", "next_id", "action", "reward", "terminated")
+    def update_priorities(self, index: IntArray, td_error: NDArray[np.floating]) -> None:
+        """New priorities ``(|td_error| + eps)^alpha`` of sampled slots ``index`` ``(B,)``."""
+        if self.tree is None:
+            return
+        p = (np.abs(np.asarray(td_error, dtype=np.float64)) + self.priority_eps) ** self.alpha
+        self.tree.set(index, p)
+        self.max_priority = max(self.max_priority, float(p.max()))
+
+    _ARRAYS = ("obs_id", "next_id", "action", "reward", "terminated", "steps")
+    #: Arrays older checkpoints lack, and the value every one of their transitions had.
+    _OPTIONAL: ClassVar[dict[str, int]] = {"steps": 1}
 
     def state(self) -> dict[str, np.ndarray]:
         """Every array needed to continue exactly (for checkpoints): the filled slots only,
@@ -193,6 +239,9 @@ class Replay:
         n = len(self)
         own: dict[str, np.ndarray] = {name: getattr(self, name)[:n] for name in self._ARRAYS}
         own["added"] = np.array([self.added], dtype=np.int64)
+        if self.tree is not None:
+            own["priority"] = self.tree.leaves(n).copy()
+            own["max_priority"] = np.array([self.max_priority], dtype=np.float64)
         return {**{f"replay/{k}": v for k, v in own.items()},
                 **{f"store/{k}": v for k, v in self.store.state().items()}}
 
@@ -204,13 +253,25 @@ class Replay:
         """
         own = {k.removeprefix("replay/"): v for k, v in arrays.items() if k.startswith("replay/")}
         added = _added(own)
+        n = min(added, self.capacity)
+        for name, value in self._OPTIONAL.items():
+            if name not in own:
+                own[name] = np.full(n, value, dtype=getattr(self, name).dtype)
         for name in self._ARRAYS:
             _check(own[name], getattr(self, name), added, f"replay {name}")
+        if self.tree is not None:
+            prio, top = own["priority"], own["max_priority"]
+            if prio.dtype != np.float64 or prio.shape[0] < n or top.shape != (1,) or not np.isfinite(prio[:n]).all():
+                raise ValueError(f"replay priorities are {prio.dtype} {prio.shape}, expected float64 ({n},)")
         store = {k.removeprefix("store/"): v for k, v in arrays.items() if k.startswith("store/")}
         # The store checks its arrays before it changes anything; the replay's are checked.
         self.store.load_state(store)
         for name in self._ARRAYS:
-            _restore(getattr(self, name), own[name], self.added, added, 0)
+            blank = self._OPTIONAL.get(name, 0)
+            _restore(getattr(self, name), own[name], self.added, added, blank)
+        if self.tree is not None:
+            self.tree.rebuild(own["priority"][:n])
+            self.max_priority = float(own["max_priority"][0])
         self.added = added
 
 

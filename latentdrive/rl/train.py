@@ -41,7 +41,8 @@ from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined, 
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
-from latentdrive.rl.dqn import epsilon, update
+from latentdrive.rl.dqn import epsilon, priority_beta, soft_update, update, updates_owed
+from latentdrive.rl.nstep import NStepEntries, NStepWindow
 from latentdrive.rl.policy import (
     CHECKPOINT,
     CONFIG,
@@ -58,7 +59,7 @@ from latentdrive.rl.policy import (
 from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Replay
 from latentdrive.rollout import StepRecord, rollout
 from latentdrive.runlock import dir_lock
-from latentdrive.runtime import resolve_device, torch_settings
+from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
 from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed
 from latentdrive.vec import make_vec
 
@@ -80,12 +81,15 @@ class TrainResult(dict[str, Any]):
 
 def make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> ObservationStore:
     cap = cfg.dqn.buffer_size
+    # n-step entries reach the replay up to n-1 steps after their first observation was
+    # stored: the store keeps 2·(n-1) more steps' worth of observations per agent slot.
+    late = 2 * (cfg.dqn.n_step - 1) * n_slots
     if net.mode in LATENT_MODES:
         # Per step: one next observation per transition and n_av first observations per
         # ended environment; over the replay's span that is at most 2·cap + 3·n_slots.
-        return LatentStore(2 * cap + 4 * n_slots, net.stored_shape)
+        return LatentStore(2 * cap + 4 * n_slots + late, net.stored_shape)
     t = cfg.observation.frames
-    return FrameStore(2 * cap + (2 * t + 1) * n_slots, cfg.observation.shape)
+    return FrameStore(2 * cap + (2 * t + 1) * n_slots + late, cfg.observation.shape)
 
 
 class Learner:
@@ -93,16 +97,20 @@ class Learner:
 
     def __init__(self, cfg: PolicyTrainConfig, net: QNetwork, device: torch.device, n_slots: int) -> None:
         self.cfg, self.net, self.device = cfg, net, device
+        self.dtype = resolve_precision(cfg.precision, device)
         self.target = copy.deepcopy(net).requires_grad_(False)
         self.optimizer = torch.optim.Adam(net.trainable_parameters(), lr=cfg.dqn.lr)
-        self.replay = Replay(cfg.dqn.buffer_size, make_store(net, cfg, n_slots))
+        d = cfg.dqn
+        self.replay = Replay(d.buffer_size, make_store(net, cfg, n_slots), prioritized=d.prioritized,
+                             alpha=d.priority_alpha, priority_eps=d.priority_eps)
+        self.window: NStepWindow | None = None  # sized by the first step's agent slots
         self.rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x51]))
         self.transitions = 0
         self.updates = 0
         self.episodes = 0
         self.losses: list[float] = []
         self.learn_seconds = 0.0  # wall time in updates (for the benchmark)
-        self.cache = FeatureCache(net, device)
+        self.cache = FeatureCache(net, device, self.dtype)
 
     def eps(self) -> float:
         return epsilon(self.cfg.dqn, self.transitions, self.cfg.steps)
@@ -130,8 +138,12 @@ class Learner:
         store = self.replay.store
         next_ids = store.add(nxt.cpu().numpy(), cur[ei, ai])
         # terminated (crash, mission done) does not bootstrap; cut-off agents (another AV
-        # crashed, time ran out, the segment ended) do: see rl.dqn.td_targets.
-        self.replay.add(cur[ei, ai], rec.actions[ei, ai], ag.reward[ei, ai], next_ids, ag.terminated[ei, ai])
+        # crashed, time ran out, the segment ended) do: see rl.dqn.td_targets. The window
+        # turns the one-step transitions into n-step ones (rl.nstep).
+        if self.window is None:
+            self.window = NStepWindow(self.cfg.dqn.n_step, self.cfg.dqn.gamma, cur.shape)
+        self._store(self.window.push(ei, ai, cur[ei, ai], rec.actions[ei, ai], ag.reward[ei, ai], next_ids,
+                                     ag.terminated[ei, ai], ag.truncated[ei, ai]))
         cur = cur.copy()
         cur[ei, ai] = next_ids
         for e in np.flatnonzero(rec.ended):
@@ -141,22 +153,39 @@ class Learner:
         self.episodes += len(rec.outcomes)
         return cur
 
+    def _store(self, entries: NStepEntries) -> None:
+        self.replay.add(entries.obs_id, entries.action, entries.reward, entries.next_id, entries.terminated,
+                        entries.steps)
+
+    def end_segment(self) -> None:
+        """Store the n-step transitions still pending: the segment's end cuts every agent
+        off, and they bootstrap from their latest observation. Called before each checkpoint,
+        which therefore holds no pending state."""
+        if self.window is not None:
+            self._store(self.window.flush())
+            self.window = None
+
     def learn(self) -> None:
-        """The updates the transitions collected so far are owed (one per ``train_every``)."""
+        """The updates the transitions collected so far are owed (``dqn.updates_per_transition``)."""
         t0 = time.perf_counter()
-        d = self.cfg.dqn
-        owed = (self.transitions - d.learning_starts) // d.train_every - self.updates
+        owed = updates_owed(self.cfg.dqn, self.transitions) - self.updates
         for _ in range(max(0, owed)):
             self.update_step()
         self.learn_seconds += time.perf_counter() - t0
 
     def update_step(self) -> None:
-        """One sampled minibatch, one gradient step, and the target copy when it is due."""
+        """One sampled minibatch, one gradient step, and the target update when it is due."""
         d = self.cfg.dqn
-        batch = self.replay.sample(self.rng, d.batch_size, self.device)
-        self.losses.append(update(self.net, self.target, self.optimizer, batch, d))
+        beta = priority_beta(d, self.transitions, self.cfg.steps)
+        batch = self.replay.sample(self.rng, d.batch_size, self.device, beta=beta)
+        stats = update(self.net, self.target, self.optimizer, batch, d, self.dtype)
+        self.losses.append(stats.loss)
+        if batch.slots is not None and d.prioritized:
+            self.replay.update_priorities(batch.slots, stats.td_error.cpu().numpy())
         self.updates += 1
-        if self.updates % d.target_update == 0:
+        if d.tau > 0:
+            soft_update(self.target, self.net, d.tau)
+        elif self.updates % d.target_update == 0:
             self.target.load_state_dict(self.net.state_dict())
 
     # ---- checkpoints ---------------------------------------------------------------
@@ -419,6 +448,7 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
             before = learner.transitions
             if learner.transitions >= end:
                 break
+        learner.end_segment()
         elapsed = time.perf_counter() - t0
         loss = float(np.mean(learner.losses)) if learner.losses else float("nan")
         learner.losses.clear()

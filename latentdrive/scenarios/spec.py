@@ -103,7 +103,8 @@ class RewardConfig(Config):
 
     r_i = collision·crashed_i (on the step it crashes)
         + speed·clip((v_i − v_lo)/(v_hi − v_lo), 0, 1)   (v_lo, v_hi: the scenario's reward_speed_range)
-        + mission·arrived_i (on the step the mission completes).
+        + mission·arrived_i (on the step the mission completes, unless the AV also
+          crashes on that step: a crash is a failure and is never paid as an arrival).
 
     An AV that completes its mission stops earning (its episode terminated), so the
     mission must be worth more than the speed term it gives up: at discount γ cruising

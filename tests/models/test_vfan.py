@@ -79,3 +79,21 @@ def test_bad_modes_and_mismatched_encoders_are_refused():
     with pytest.raises(ValueError, match="encoder takes observations"):
         QNetwork(VFANConfig(), "latent", (4, 2, 32, 64), BottleneckNetwork(BottleneckConfig()))
 
+
+
+@pytest.mark.parametrize("mode", MODES)
+def test_the_dueling_head_combines_value_and_mean_centred_advantages(mode):
+    enc = None if mode == "raw" else BottleneckNetwork(BottleneckConfig(latent_dim=16))
+    net = QNetwork(VFANConfig(hidden=16), mode, OBS, enc, dueling=True)
+    stored = net.features(torch.rand(3, *OBS))
+    q = net(stored)
+    assert q.shape == (3, 5)
+    body = net.body
+    x = stored if mode == "raw" else (net.encoder.encode(stored) if mode == "end-to-end" else stored)
+    h = body.net(x.reshape(3, -1, 1, 1, 1) if mode != "raw" else x)
+    adv = body.advantage(h)
+    torch.testing.assert_close(q, body.value(h) + adv - adv.mean(dim=1, keepdim=True))
+    # Without the option the parameter names are those of older checkpoints.
+    plain = QNetwork(VFANConfig(hidden=16), mode, OBS, enc)
+    assert not any(k.startswith(("body.value", "body.advantage")) for k in plain.state_dict())
+    assert "body.net.9.weight" in plain.state_dict() and "body.net.9.weight" not in net.state_dict()

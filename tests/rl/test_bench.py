@@ -23,3 +23,16 @@ def test_a_single_run_prints_no_range():
     (row,) = bench_training(["raw"], ["merge"], transitions=24, updates=2, envs=2, overrides=SMALL)
     assert row.runs == 1 and row.encode < 0.05  # raw mode stores observations as they are
     assert "median" not in format_train_bench([row], envs=2, threads=1)
+
+
+def test_a_bf16_run_is_measured_beside_fp32_in_the_same_run():
+    rows = bench_training(["raw"], ["merge"], transitions=24, updates=2, envs=2,
+                          overrides={**SMALL, "precision": "bf16"})
+    assert [r.precision for r in rows] == ["fp32", "bf16"]
+    assert all(r.updates_per_s > 0 and r.transitions_per_s > 0 for r in rows)
+    text = format_train_bench(rows, envs=2, threads=1)
+    assert "raw: bf16 over fp32 in this run" in text
+    fp32_only = bench_training(["raw"], ["merge"], transitions=24, updates=2, envs=2,
+                               overrides={**SMALL, "precision": "fp32"})
+    assert [r.precision for r in fp32_only] == ["fp32"]
+    assert "fp32 only" in format_train_bench(fp32_only, envs=2, threads=1)

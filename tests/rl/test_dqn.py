@@ -61,3 +61,65 @@ def test_dqn_learns_a_deterministic_chain():
     assert (q.argmax(dim=1) == 1).all()
     expected = torch.tensor([gamma ** (n - 2 - s) for s in range(n - 1)])
     torch.testing.assert_close(q[:, 1], expected, atol=0.05, rtol=0.0)
+
+
+def test_the_replay_ratio_is_an_exact_fraction_and_may_exceed_one():
+    from latentdrive.rl.dqn import updates_owed
+
+    assert [updates_owed(DQNConfig(learning_starts=10), t) for t in (0, 10, 17, 18, 26)] == [0, 0, 0, 1, 2]
+    two = DQNConfig(learning_starts=0, updates_per_transition=2)
+    assert updates_owed(two, 5) == 10
+    third = DQNConfig(learning_starts=0, updates_per_transition=1 / 3)
+    # Counted as 1/3 exactly, not as the float 0.333...: every 3rd transition, never one early or late.
+    assert [updates_owed(third, t) for t in range(3, 3001, 3)] == list(range(1, 1001))
+    assert updates_owed(third, 2999) == 999
+
+
+def test_older_configs_name_the_ratio_train_every():
+    from latentdrive.config import ConfigError, validate
+
+    assert validate(DQNConfig, {"train_every": 8}).updates_per_transition == 0.125
+    assert validate(DQNConfig, {"train_every": 3}).updates_per_transition == pytest.approx(1 / 3)
+    with pytest.raises(ConfigError, match="not both"):
+        validate(DQNConfig, {"train_every": 2, "updates_per_transition": 0.5})
+    with pytest.raises(ConfigError, match="train_every"):
+        validate(DQNConfig, {"train_every": 0})
+    with pytest.raises(ConfigError, match="updates_per_transition"):
+        validate(DQNConfig, {"updates_per_transition": 0.1234567})
+    with pytest.raises(ConfigError, match="updates_per_transition"):
+        validate(DQNConfig, {"updates_per_transition": 0})
+
+
+def test_soft_updates_move_the_target_tau_of_the_way_and_leave_frozen_parameters():
+    from latentdrive.rl.dqn import soft_update
+
+    online, target = nn.Linear(2, 2), nn.Linear(2, 2)
+    frozen_on, frozen_tg = nn.Linear(2, 1).requires_grad_(False), nn.Linear(2, 1).requires_grad_(False)
+    a, b = nn.Sequential(online, frozen_on), nn.Sequential(target, frozen_tg)
+    before = {k: v.clone() for k, v in b.state_dict().items()}
+    soft_update(b, a, 0.25)
+    torch.testing.assert_close(target.weight, before["0.weight"] + 0.25 * (online.weight - before["0.weight"]))
+    assert torch.equal(frozen_tg.weight, before["1.weight"])
+
+
+def test_importance_weights_scale_each_samples_loss():
+    from latentdrive.rl.replay import Batch
+
+    torch.manual_seed(0)
+    net = nn.Linear(3, 2)
+    target = nn.Linear(3, 2)
+    obs = torch.rand(4, 3)
+    base = Batch(obs, torch.tensor([0, 1, 0, 1]), torch.rand(4), torch.rand(4, 3), torch.ones(4))
+    cfg = DQNConfig()
+    losses = []
+    for weight in (None, torch.tensor([1.0, 0.0, 0.0, 0.0])):
+        opt = torch.optim.SGD(net.parameters(), lr=0.0)
+        losses.append(update(net, target, opt, base._replace(weight=weight), cfg))
+    plain, weighted = losses
+    per_sample = torch.nn.functional.huber_loss(
+        net(obs).gather(1, base.action[:, None]).squeeze(1),
+        td_targets(base.reward, base.bootstrap, net(base.next_obs), target(base.next_obs), cfg.gamma, True),
+        reduction="none").detach()
+    assert plain.loss == pytest.approx(float(per_sample.mean()), rel=1e-5)
+    assert weighted.loss == pytest.approx(float(per_sample[0] / 4), rel=1e-5)
+    assert weighted.td_error.shape == (4,) and (weighted.td_error >= 0).all()

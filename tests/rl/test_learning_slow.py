@@ -20,7 +20,7 @@ pytestmark = pytest.mark.slow
 def test_raw_policy_fails_significantly_less_than_random_on_intersection(tmp_path):
     cfg = PolicyTrainConfig.model_validate({
         "mode": "raw", "scenarios": ["intersection"], "steps": 40_000, "segment": 5000, "eval_episodes": 50,
-        "dqn": {"train_every": 2},
+        "dqn": {"updates_per_transition": 0.5},
     })
     train_policy(cfg, tmp_path / "run", progress=False, say=lambda _l: None)
     net, _ = load_policy_network(tmp_path / "run")

@@ -93,14 +93,18 @@ def test_evicted_observations_are_refused():
         latents.get(ids[:1])
 
 
-def test_raw_replay_of_100k_transitions_fits_in_2_gib():
-    cfg = PolicyTrainConfig(mode="raw", dqn={"buffer_size": 100_000})
+@pytest.mark.parametrize("dqn", [{}, {"n_step": 20, "prioritized": True}])
+def test_raw_replay_of_100k_transitions_fits_in_2_gib(dqn):
+    cfg = PolicyTrainConfig(mode="raw", dqn={"buffer_size": 100_000, **dqn})
     net = build_network(cfg, None)
-    replay = Replay(cfg.dqn.buffer_size, make_store(net, cfg, n_slots=16 * 2))
+    d = cfg.dqn
+    replay = Replay(d.buffer_size, make_store(net, cfg, n_slots=16 * 2), prioritized=d.prioritized)
     store = replay.store
     assert isinstance(store, FrameStore)
     arrays: list[np.ndarray] = [replay.obs_id, replay.next_id, replay.action, replay.reward, replay.terminated,
-                                store.data, store.prev]
+                                replay.steps, store.data, store.prev]
+    if replay.tree is not None:
+        arrays.append(replay.tree.tree)
     total = sum(a.nbytes for a in arrays)
     assert total <= 2 * 2**30, f"{total / 2**30:.2f} GiB"
 
@@ -189,3 +193,31 @@ def test_the_feature_cache_encodes_each_needed_observation_once_and_no_other(mon
     cache(obs)  # now every row: only the three missing ones are encoded
     assert encoded == [3, 3]
     torch.testing.assert_close(cache(obs), want, atol=1e-6, rtol=1e-5)
+
+
+@pytest.mark.parametrize("mode", ["raw", "latent-random"])
+def test_n_step_entries_never_refer_to_evicted_observations(mode):
+    # A small ring that wraps many times: every stored entry's observations must still be
+    # in the store while the entry is in the replay, although n-step entries arrive late.
+    cfg = PolicyTrainConfig(mode=mode, scenarios=("intersection", "merge"), envs=4, observation=OBS,
+                            dqn={"buffer_size": 100, "n_step": 6})
+    net = build_network(cfg, None if mode == "raw" else BottleneckConfig.for_observation(cfg.observation))
+    vec = latentdrive.make_vec(list(cfg.scenarios), cfg.envs, observation=OBS)
+    learner = Learner(cfg, net, torch.device("cpu"), cfg.envs * vec.n_av)
+    cache = FeatureCache(net, torch.device("cpu"))
+    cur = None
+    r = learner.replay
+    for t, rec in enumerate(rollout(vec, _random_policy(np.random.default_rng(0)), seed=2)):
+        if cur is None:
+            cur = learner.start_segment(cache(rec.obs))
+        cur = learner.record(rec, cur, cache)
+        n = len(r)
+        r.store.get(r.obs_id[:n])  # raises IndexError on an evicted observation
+        r.store.get(r.next_id[:n])
+        if t == 80:
+            break
+    learner.end_segment()
+    vec.close()
+    assert r.added > 3 * r.capacity and set(np.unique(r.steps)) == set(range(1, 7))
+    r.store.get(r.obs_id)
+    r.store.get(r.next_id)

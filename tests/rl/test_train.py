@@ -144,12 +144,18 @@ class _Stop(Exception):
     pass
 
 
-def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_path, tiny, monkeypatch):
+#: Every learner option away from its default at once.
+LEARNER_OPTIONS = {"n_step": 3, "prioritized": True, "dueling": True, "tau": 0.05, "updates_per_transition": 1}
+
+
+@pytest.mark.parametrize("options", [{}, LEARNER_OPTIONS], ids=["defaults", "options"])
+def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_path, tiny, monkeypatch, options):
     # The default buffer holds 100k transitions: saved whole, a raw replay takes 400 MB
     # at this tiny grid (1.6 GB at the default one) whatever the run's length.
+    from latentdrive.bnn.checkpoint import read_checkpoint
     from latentdrive.rl.train import Learner
 
-    cfg = tiny(mode="raw", steps=200, dqn={"buffer_size": 100_000})
+    cfg = tiny(mode="raw", steps=200, dqn={"buffer_size": 100_000, **options})
     train_policy(cfg, tmp_path / "whole", **_quiet())
     save = Learner.save
 
@@ -163,6 +169,13 @@ def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_p
             train_policy(cfg, tmp_path / "r", **_quiet())
     (replay,) = (tmp_path / "r").glob("replay-*.safetensors")
     assert replay.stat().st_size < 2 << 20
+    # Every agent-transition starts one replay entry, n-step or not: none is pending at a
+    # checkpoint, and the n-step returns are stored with their horizons.
+    extra = read_checkpoint(tmp_path / "r" / CHECKPOINT)[1]["extra"]
+    assert extra["replay_added"] == extra["transitions"] > 0
+    steps = load_file(str(replay))["replay/steps"]
+    assert set(np.unique(steps)) <= set(range(1, cfg.dqn.n_step + 1))
+    assert (steps.max() == 3) == bool(options)
     train_policy(cfg, tmp_path / "r", resume=True, **_quiet())
     whole, resumed = _model_tensors(tmp_path / "whole"), _model_tensors(tmp_path / "r")
     assert all(np.array_equal(whole[k], resumed[k]) for k in whole)
@@ -209,3 +222,21 @@ def test_a_run_trained_under_an_older_reward_still_loads(tmp_path, tiny):
     path.write_text(json.dumps(data))
     _, cfg = load_policy_network(tmp_path / "run")
     assert cfg.reward.mission == 1.0
+
+
+def test_a_run_whose_config_predates_the_learner_options_still_loads(tmp_path, tiny):
+    import json
+
+    train_policy(tiny(mode="raw", steps=100), tmp_path / "run", **_quiet())
+    path = tmp_path / "run" / "config.json"
+    data = json.loads(path.read_text())
+    dqn = data["train"]["dqn"]
+    for key in ("n_step", "tau", "dueling", "prioritized", "priority_alpha", "priority_beta", "priority_eps",
+                "updates_per_transition"):
+        del dqn[key]
+    del data["train"]["precision"]
+    dqn["train_every"] = 4
+    path.write_text(json.dumps(data))
+    _, cfg = load_policy_network(tmp_path / "run")
+    assert cfg.dqn.updates_per_transition == 0.25 and cfg.dqn.n_step == 1 and not cfg.dqn.dueling
+    assert cfg.precision == "auto"
