@@ -33,6 +33,7 @@ class PolicyTrainConfig(Config):
     segment: int = Field(10_000, ge=1, description="Agent-transitions between checkpoints. Every environment is reset at a segment boundary, from a seed fixed by (seed, segment index), so a resumed run continues exactly as an uninterrupted one.")
     eval_every: int = Field(2, ge=0, description="Evaluate on held-out seeds every this many segments, and at the end (0: only at the end).")
     eval_episodes: int = Field(30, ge=1, le=100_000, description="Evaluation episodes per scenario at each periodic evaluation.")
+    eval_seeds: Literal["evaluation", "validation"] = Field("evaluation", description="Episodes of the periodic evaluation: 'evaluation' plays evaluation set TRAINING_EVAL_OFFSET (disjoint from the final evaluation's default set); 'validation' plays validation set 0, the range hyperparameter search scores on (latentdrive tune sets it), so that a tuned number is never a test number. See latentdrive.seeds.")
     device: str = Field("auto", description="'auto' (CUDA when present), 'cpu', 'cuda' or 'cuda:N'.")
     threads: int = Field(1, ge=0, le=1024, description="CPU threads for torch (0: torch's default). One avoids oversubscribing the cores the simulator also uses; results are only bitwise reproducible at the same count.")
 
