@@ -119,6 +119,7 @@ def open_study(search: Search, create: bool = True) -> optuna.Study:
     local = search.storage is None
     if local:
         _check_local_db(search.out / STUDY_DB)
+        search.out.mkdir(parents=True, exist_ok=True)
     where = search.out / STUDY_DB if local else f"--storage {search.storage}"
     try:
         kwargs = {"connect_args": {"timeout": 60}} if search.url.startswith("sqlite") else {}
