@@ -22,6 +22,7 @@ from latentdrive.config import (
 from latentdrive.data.cli import add_collect_parser
 from latentdrive.experiments.policy_cli import add_policy_parsers
 from latentdrive.experiments.reproduce_cli import add_reproduce_parsers
+from latentdrive.experiments.tune_cli import add_tune_parser
 from latentdrive.fileio import atomic_write_text, output_problem
 
 __all__ = ["main"]
@@ -351,6 +352,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_policy_parsers(sub)
     add_reproduce_parsers(sub)
+    add_tune_parser(sub)
 
     s = sub.add_parser("figures", help="redraw the figures of a finished study")
     s.add_argument("kind", choices=["bnn"], help="which study")

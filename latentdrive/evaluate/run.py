@@ -38,6 +38,7 @@ def evaluate_policy(
     envs: int = 16,
     backend: str = "fast",
     seed_offset: int = 0,
+    reset_seed: int | None = None,
     progress: Callable[[int], None] | None = None,
     **overrides: Any,
 ) -> list[EpisodeOutcome]:
@@ -48,6 +49,9 @@ def evaluate_policy(
             stream starts it afresh for each scenario).
         envs: environments per scenario (at most ``episodes``). Part of the definition
             of the evaluation set: compare policies evaluated with the same value.
+        seed_offset: which evaluation set (:func:`latentdrive.seeds.eval_reset_seed`).
+        reset_seed: the first environment's reset seed instead of an evaluation set's, for
+            another range (:func:`latentdrive.seeds.validation_reset_seed`).
         progress: called with the number of episodes just finished.
         **overrides: env overrides, as for :func:`latentdrive.make_vec`.
     """
@@ -55,11 +59,12 @@ def evaluate_policy(
         raise ValueError(f"episodes must be at least 1, got {episodes}")
     k = max(1, min(envs, episodes))
     want = np.asarray(quotas(episodes, k))
+    first = eval_reset_seed(seed_offset) if reset_seed is None else reset_seed
     outcomes: list[EpisodeOutcome] = []
     for name in scenarios:
         vec = make_vec(name, k, backend=backend, **overrides)
         got = np.zeros(k, dtype=np.int64)
-        for rec in rollout(vec, make_policy(), seed=eval_reset_seed(seed_offset)):
+        for rec in rollout(vec, make_policy(), seed=first):
             done = 0
             for o in rec.outcomes:
                 if got[o.env_index] < want[o.env_index]:

@@ -7,7 +7,13 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from latentdrive.config import ConfigError, merge_overrides, nonnegative_int, parse_override_args
+from latentdrive.config import (
+    ConfigError,
+    load_yaml,
+    merge_overrides,
+    nonnegative_int,
+    parse_override_args,
+)
 from latentdrive.fileio import output_problem
 
 __all__ = ["add_policy_parsers"]
@@ -28,6 +34,9 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
     from latentdrive.rl.train import train_policy
 
     base: dict[str, Any] = read_run_config(args.run)["train"] if args.resume else {}
+    if args.config:
+        # A config file (tune's best.yaml), under the flags and --set.
+        base = merge_overrides(base, load_yaml(args.config))
     flags = {"mode": args.mode, "bnn": args.bnn, "steps": args.steps, "seed": args.seed, "envs": args.envs,
              "backend": args.backend, "init_from": args.init_from}
     data = merge_overrides(base, {k: v for k, v in flags.items() if v is not None})
@@ -184,6 +193,8 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("--envs", type=int, default=None, help="environments stepped together (default 16)")
     s.add_argument("--backend", choices=["fast", "highway"], default=None, help="simulator (default fast)")
     s.add_argument("--init-from", default=None, help="start from another policy run's weights (fine-tuning)")
+    s.add_argument("--config", default="", metavar="FILE",
+                   help="train-policy settings from a YAML file (as `tune` writes in best.yaml); flags and --set override it")
     s.add_argument("--resume", action="store_true", help="continue the run in RUN (a larger --steps extends it)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",

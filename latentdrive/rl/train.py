@@ -60,10 +60,11 @@ from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Rep
 from latentdrive.rollout import StepRecord, rollout
 from latentdrive.runlock import dir_lock
 from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
-from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed
+from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed, validation_reset_seed
 from latentdrive.vec import make_vec
 
-__all__ = ["EVALS", "EVAL_COLUMNS", "REPLAY_PATTERN", "Learner", "TrainResult", "learner_steps", "make_store", "train_policy"]
+__all__ = ["EVALS", "EVAL_COLUMNS", "REPLAY_PATTERN", "EvalCallback", "Learner", "TrainResult", "learner_steps",
+           "make_store", "train_policy"]
 
 #: Replay of segment k: ``replay-<k>.safetensors``. A new name per segment, so that a kill
 #: while saving never leaves a checkpoint beside a replay it does not belong to.
@@ -73,6 +74,12 @@ EVALS = "eval.csv"
 _METRIC_COLUMNS = ("transitions", "updates", "episodes", "epsilon", "loss", "train_failure_rate",
                    "train_crash_rate", "transitions_per_s", "elapsed_s")
 EVAL_COLUMNS = ("transitions", "scenario", "episodes", "failure_rate", "crash_rate", "success_rate", "mean_return")
+
+
+#: Called after each periodic evaluation, once its checkpoint is saved, with the
+#: agent-transitions so far and the mixed failure rate in [0, 1]. An exception it raises
+#: (a search pruning the run) ends training there; the run resumes from that checkpoint.
+EvalCallback = Callable[[int, float], None]
 
 
 class TrainResult(dict[str, Any]):
@@ -362,9 +369,12 @@ class _Log:
 
 def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> dict[str, Any]:
     net.eval()
+    # Validation episodes when a search scores this run, an evaluation set otherwise.
+    reset_seed = validation_reset_seed(0) if cfg.eval_seeds == "validation" else None
     outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenarios, cfg.eval_episodes,
                                envs=min(16, cfg.eval_episodes), backend=cfg.backend, seed_offset=TRAINING_EVAL_OFFSET,
-                               observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
+                               reset_seed=reset_seed, observation=cfg.observation.model_dump(),
+                               reward=cfg.reward.model_dump())
     net.train()
     return policy_report(outcomes).as_dict()
 
@@ -388,8 +398,12 @@ def _init_weights(cfg: PolicyTrainConfig) -> dict[str, torch.Tensor]:
 
 
 def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = False,
-                 progress: bool = True, say: Callable[[str], None] = print) -> TrainResult:
-    """Train (or, with ``resume``, continue) a policy run in ``run_dir``."""
+                 progress: bool = True, say: Callable[[str], None] = print,
+                 on_eval: EvalCallback | None = None) -> TrainResult:
+    """Train (or, with ``resume``, continue) a policy run in ``run_dir``.
+
+    ``on_eval`` is told each periodic evaluation's result (see :data:`EvalCallback`).
+    """
     root = Path(run_dir)
     if not resume and (root / CHECKPOINT).exists():
         raise ConfigError(f"{root}: already holds a policy run; give --resume to continue it, or another directory")
@@ -422,14 +436,14 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
             say(f"{cfg.mode}: {net.parameter_count()} parameters")
         log = _Log(root, kept, learner.transitions if resume else None)
         try:
-            return _run(cfg, root, net, learner, vec, segment, device, log, progress)
+            return _run(cfg, root, net, learner, vec, segment, device, log, progress, on_eval)
         finally:
             log.close()
             vec.close()
 
 
 def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, vec: Any, segment: int,
-         device: torch.device, log: _Log, progress: bool) -> TrainResult:
+         device: torch.device, log: _Log, progress: bool, on_eval: EvalCallback | None) -> TrainResult:
     from tqdm import tqdm
 
     bar = tqdm(total=cfg.steps, initial=min(learner.transitions, cfg.steps), unit="tr", disable=not progress,
@@ -462,7 +476,8 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
         }
         log.write(METRICS, row)
         final = learner.transitions >= cfg.steps
-        if final or (cfg.eval_every and (segment + 1) % cfg.eval_every == 0):
+        evaluated = final or bool(cfg.eval_every and (segment + 1) % cfg.eval_every == 0)
+        if evaluated:
             last_eval = _evaluate(cfg, net, device)
             for name, summary in [*last_eval["scenarios"].items(), ("mixed", last_eval["mixed"])]:
                 log.write(EVALS, {"transitions": learner.transitions, "scenario": name, "episodes": summary["episodes"],
@@ -474,6 +489,9 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
             bar.set_postfix(fail=f"{mixed['failure_rate']['rate']:.2f}", crash=f"{mixed['crash_rate']['rate']:.2f}")
         learner.save(root, segment)
         segment += 1
+        if evaluated and on_eval is not None:
+            # After the checkpoint: whatever the callback raises, the run resumes from here.
+            on_eval(learner.transitions, float(last_eval["mixed"]["failure_rate"]["rate"]))
     bar.close()
     return TrainResult(transitions=learner.transitions, updates=learner.updates, episodes=learner.episodes,
                        evaluation=last_eval, parameters=net.parameter_count())

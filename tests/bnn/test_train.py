@@ -18,6 +18,7 @@ from latentdrive.bnn import train as train_mod
 from latentdrive.bnn.batch import BNNBatch, array_batches_fn, iterate_batches, synthetic_dataset
 from latentdrive.bnn.checkpoint import CheckpointError, read_checkpoint
 from latentdrive.bnn.losses import (
+    PAPER_WEIGHTS,
     CellWeights,
     LossKind,
     cell_weights,
@@ -169,7 +170,7 @@ def test_bce_pushes_a_missing_vehicle_harder_than_l2() -> None:
     grads = {}
     for kind in ("l2", "bce"):
         logit = torch.full_like(target, math.log(0.05 / 0.95), requires_grad=True)
-        reconstruction_error(logit, target, loss=kind).backward()  # type: ignore[arg-type]
+        reconstruction_error(logit, target, loss=kind).backward()
         assert logit.grad is not None
         grads[kind] = float(logit.grad[0, 0, 0].abs().sum())
     assert grads["bce"] > 5 * grads["l2"]
@@ -198,7 +199,7 @@ def test_train_step_uses_step_losses(
 ) -> None:
     seen: list[tuple[torch.Tensor, float]] = []
 
-    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0, w: CellWeights = CellWeights(),
+    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0, w: CellWeights = PAPER_WEIGHTS,
             loss: LossKind = "l2"):
         seen.append((batch.clean, lam))
         return step_losses(model, batch, lam, w, loss)

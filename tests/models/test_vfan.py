@@ -89,7 +89,11 @@ def test_the_dueling_head_combines_value_and_mean_centred_advantages(mode):
     q = net(stored)
     assert q.shape == (3, 5)
     body = net.body
-    x = stored if mode == "raw" else (net.encoder.encode(stored) if mode == "end-to-end" else stored)
+    if mode == "end-to-end":
+        assert net.encoder is not None
+        x = net.encoder.encode(stored)
+    else:
+        x = stored
     h = body.net(x.reshape(3, -1, 1, 1, 1) if mode != "raw" else x)
     adv = body.advantage(h)
     torch.testing.assert_close(q, body.value(h) + adv - adv.mean(dim=1, keepdim=True))
