@@ -199,7 +199,10 @@ def build_graph(cfg: ReproduceConfig) -> Graph:
     def policy(rep: str, train_set: str, scenarios: tuple[str, ...], seed: int, steps_: int, init: str | None = None) -> str:
         mode = "latent" if rep == "latent-lam" else rep
         pcfg = cfg.policy_config(mode, scenarios, seed, steps_, finetune=init is not None).model_dump(mode="json")
+        # The step's key holds the specs' hashes ("specs"); the run fills in the specs
+        # themselves and stores them in its own config.json.
         pcfg.update(bnn=None, init_from=None)
+        del pcfg["specs"]
         inputs = {"bnn": bnn_for[rep]} if rep in bnn_for else {}
         if init is not None:
             inputs["init"] = init

@@ -33,11 +33,12 @@ from latentdrive.bnn.checkpoint import (
     save_checkpoint,
     tensors_digest,
 )
-from latentdrive.config import ConfigError, config_hash
+from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.errors import first_line
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined, read_log
+from latentdrive.models.bottleneck import BottleneckConfig
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
@@ -247,8 +248,8 @@ def _write_config(run_dir: Path, cfg: PolicyTrainConfig, net: QNetwork, enc: Any
         "encoder": None if enc is None else enc.model_dump(mode="json"),
         "parameters": net.parameter_count(),
         "config_hash": config_hash(cfg),
-        # Scenarios are named in the config; their specs can change between versions.
-        "scenario_hashes": scenario_hashes(cfg.scenarios),
+        # The specs themselves are in "train"; their hashes let a glance tell two runs' apart.
+        "scenario_hashes": scenario_hashes(cfg.specs),
     }
     atomic_write_text(run_dir / CONFIG, json.dumps(data, indent=1) + "\n")
 
@@ -272,6 +273,12 @@ def _check_resume(run_dir: Path, cfg: PolicyTrainConfig) -> None:
         if not _same_encoder(mine, load_policy_network(run_dir)[0].state_dict()):
             raise ConfigError(f"{run_dir}: --resume with another BNN ({cfg.bnn} holds other weights than the "
                               f"run's {saved.get('bnn')})")
+
+
+def _stored_encoder(run_dir: Path) -> BottleneckConfig | None:
+    """The encoder architecture a run's config.json records (its weights are in the checkpoint)."""
+    data = read_run_config(run_dir)
+    return validate(BottleneckConfig, data["encoder"]) if data.get("encoder") else None
 
 
 def _same_encoder(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
@@ -333,7 +340,7 @@ class _Log:
 
 def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> dict[str, Any]:
     net.eval()
-    outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenarios, cfg.eval_episodes,
+    outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenario_specs(), cfg.eval_episodes,
                                envs=min(16, cfg.eval_episodes), backend=cfg.backend, seed_offset=TRAINING_EVAL_OFFSET,
                                observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
     net.train()
@@ -367,7 +374,10 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
     if resume and not (root / CHECKPOINT).exists():
         raise ConfigError(f"{root}: nothing to resume (no {CHECKPOINT})")
     device = resolve_device(cfg.device)
-    enc = encoder_config(cfg)  # validates the BNN before anything is written
+    # A resumed run's checkpoint holds its encoder's weights: it needs its BNN folder only
+    # if that is still there (to check it), not when the run was moved without it.
+    bnn_gone = resume and cfg.bnn is not None and not (Path(cfg.bnn) / CHECKPOINT).exists()
+    enc = _stored_encoder(root) if bnn_gone else encoder_config(cfg)  # checked before anything is written
     if resume:
         _check_resume(root, cfg)
     else:
@@ -375,13 +385,13 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
     init_state = _init_weights(cfg) if cfg.init_from and not resume else None
     root.mkdir(parents=True, exist_ok=True)
     with dir_lock(root, "train-policy"), torch_settings(True, device, cfg.threads):
-        net = build_network(cfg, enc).to(device)
+        net = build_network(cfg, enc, load_bnn_weights=not bnn_gone).to(device)
         if init_state is not None:
             try:
                 net.load_state_dict(init_state)
             except RuntimeError:
                 raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's") from None
-        vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend,
+        vec = make_vec(cfg.scenario_specs(), cfg.envs, backend=cfg.backend,
                        observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
         learner = Learner(cfg, net, device, cfg.envs * vec.n_av)
         # Everything a resumption reads is checked before anything is written.
