@@ -17,6 +17,7 @@ same few episodes (``cross/<backend>/<policy>``).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +37,13 @@ from latentdrive.experiments.bnn import BNNStudyConfig, run_name, study_runs
 from latentdrive.experiments.graph import Graph, Step
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.rl.policy import scenario_hashes
-from latentdrive.scenarios import SCENARIOS, RewardConfig, check_scenario_names
+from latentdrive.scenarios import (
+    SCENARIOS,
+    RewardConfig,
+    ScenarioSpec,
+    check_scenario_names,
+    resolve_specs,
+)
 
 __all__ = ["PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config", "policy_name", "reference_name"]
 
@@ -163,9 +170,14 @@ def reference_name(ref: str) -> str:
     return f"evaluate/ref/{ref}"
 
 
-def build_graph(cfg: ReproduceConfig) -> Graph:
-    """Every step of the study, with its resolved config and inputs."""
-    specs = scenario_hashes(cfg.scenarios)
+def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] | None = None) -> Graph:
+    """Every step of the study, with its resolved config and inputs.
+
+    Steps are keyed by the hashes of the scenarios' specs: those ``specs_stored`` holds (a
+    study folder's record, so that it reports from the specs it ran on wherever it lies),
+    else today's presets.
+    """
+    specs = scenario_hashes(resolve_specs(cfg.scenarios, specs_stored))
     steps: list[Step] = []
     obs = cfg.observation.model_dump(mode="json")
     collect = cfg.bnn.collect.model_dump(mode="json")
