@@ -127,8 +127,9 @@ def train_on_dataset(
     ``run_dir/split.json``.
     """
     if not 0.0 < val_fraction < 1.0:
-        raise ConfigError(f"val_fraction must be in (0, 1): training validates on the held-out episodes, "
-                          f"got {val_fraction}")
+        # The one check of the range, for the library and `train-bnn --val-fraction` alike.
+        raise ConfigError(f"val_fraction (train-bnn --val-fraction) must be in (0, 1): training validates on "
+                          f"the held-out episodes, got {val_fraction}")
     ds = ShardDataset(dataset_dir)
     train_ids, val_ids = _split(ds, val_fraction, train_cfg.seed)
     if not len(train_ids) or not len(val_ids):

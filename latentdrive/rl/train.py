@@ -13,8 +13,6 @@ experience per segment and nothing in correctness.
 from __future__ import annotations
 
 import copy
-import csv
-import io
 import json
 import re
 import time
@@ -33,6 +31,7 @@ from latentdrive.bnn.checkpoint import (
     save_checkpoint,
     tensors_digest,
 )
+from latentdrive.bnn.runlog import RunLog
 from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.errors import first_line
 from latentdrive.evaluate.report import policy_report
@@ -301,43 +300,6 @@ def _read_logs(run_dir: Path) -> dict[str, list[dict[str, str]]]:
     return logs
 
 
-class _Log:
-    """metrics.csv, eval.csv and TensorBoard scalars.
-
-    ``kept`` holds the rows (of :func:`_read_logs`) that a resumed run keeps, those up to
-    its checkpoint; ``resume_at`` is that checkpoint's transitions (None for a new run).
-    """
-
-    def __init__(self, run_dir: Path, kept: dict[str, list[dict[str, str]]], resume_at: int | None) -> None:
-        self.files = {}
-        for name, (_, cols) in _LOGS.items():
-            path = run_dir / name
-            buf = io.StringIO()
-            w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
-            w.writeheader()
-            w.writerows(kept.get(name, []))
-            atomic_write_text(path, buf.getvalue())
-            fh = path.open("a", newline="")
-            self.files[name] = (fh, csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore"))
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_at or 0)
-
-    def write(self, name: str, row: dict[str, Any]) -> None:
-        fh, w = self.files[name]
-        w.writerow(row)
-        fh.flush()
-        prefix = "train" if name == METRICS else f"eval/{row.get('scenario', '')}"
-        for k, v in row.items():
-            if isinstance(v, float | int) and k != "transitions" and v == v:
-                self.tb.add_scalar(f"{prefix}/{k}", v, int(row["transitions"]))
-
-    def close(self) -> None:
-        for fh, _ in self.files.values():
-            fh.close()
-        self.tb.close()
-
-
 def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> dict[str, Any]:
     net.eval()
     outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenario_specs(), cfg.eval_episodes,
@@ -397,11 +359,11 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
         # Everything a resumption reads is checked before anything is written.
         logs = _read_logs(root) if resume else {}
         segment = learner.load(root) if resume else 0
-        kept = {name: [r for r in rows if int(r["transitions"]) <= learner.transitions] for name, rows in logs.items()}
         _write_config(root, cfg, net, enc)
         if not resume:
             say(f"{cfg.mode}: {net.parameter_count()} parameters")
-        log = _Log(root, kept, learner.transitions if resume else None)
+        log = RunLog(root, {name: cols for name, (_, cols) in _LOGS.items()}, "transitions",
+                     learner.transitions if resume else None, logs)
         try:
             return _run(cfg, root, net, learner, vec, segment, device, log, progress)
         finally:
@@ -410,7 +372,7 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
 
 
 def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, vec: Any, segment: int,
-         device: torch.device, log: _Log, progress: bool) -> TrainResult:
+         device: torch.device, log: RunLog, progress: bool) -> TrainResult:
     from tqdm import tqdm
 
     bar = tqdm(total=cfg.steps, initial=min(learner.transitions, cfg.steps), unit="tr", disable=not progress,
@@ -440,7 +402,7 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
             "transitions_per_s": (learner.transitions - start_transitions) / max(elapsed, 1e-9),
             "elapsed_s": round(elapsed, 2),
         }
-        log.write(METRICS, row)
+        log.write(METRICS, row, "train")
         final = learner.transitions >= cfg.steps
         if final or (cfg.eval_every and (segment + 1) % cfg.eval_every == 0):
             last_eval = _evaluate(cfg, net, device)
@@ -449,7 +411,7 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
                                   "failure_rate": summary["failure_rate"]["rate"],
                                   "crash_rate": summary["crash_rate"]["rate"],
                                   "success_rate": summary["success_rate"]["rate"],
-                                  "mean_return": summary["mean_return"]["mean"]})
+                                  "mean_return": summary["mean_return"]["mean"]}, f"eval/{name}")
             mixed = last_eval["mixed"]
             bar.set_postfix(fail=f"{mixed['failure_rate']['rate']:.2f}", crash=f"{mixed['crash_rate']['rate']:.2f}")
         learner.save(root, segment)
