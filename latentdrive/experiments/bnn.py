@@ -43,6 +43,7 @@ from latentdrive.data.collect import (
     CollectConfig,
     check_collect_target,
     collect,
+    dataset_specs,
     resolve_env_configs,
 )
 from latentdrive.data.dataset import ShardDataset
@@ -343,7 +344,8 @@ def read_study_config(out: Path) -> BNNStudyConfig:
     path = out / STUDY_CONFIG
     data = read_json(path, limit=MAX_JSON_BYTES, what="study config", error=ConfigError)
     try:
-        return validate(BNNStudyConfig, data)
+        # The dataset's stored specs stand for the spec files its config names.
+        return validate(BNNStudyConfig, data, context={"specs": dataset_specs(out / "dataset")})
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
 
