@@ -40,7 +40,7 @@ lint: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/latentdrive bench
 
-## learning: the README's learning results (BNN, raw and latent policies, evaluation; an hour or more on 2 cores)
+## learning: the learning results of docs/learning.md (BNN, raw and latent policies, evaluation; an hour or more on 2 cores)
 learning: $(STAMP)
 	scripts/learning.sh
 

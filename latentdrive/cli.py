@@ -212,9 +212,7 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
     clash = sorted(set(model) & set(own))
     if clash:
         raise ConfigError(f"model.{clash[0]} is set by {own[clash[0]]}, not --set")
-    if not 0.0 < args.val_fraction < 1.0:
-        raise ConfigError(f"--val-fraction must be in (0, 1): training validates on the held-out episodes, "
-                          f"got {args.val_fraction}")
+    # --val-fraction is checked by train_on_dataset, before anything is written.
     base = {"lambda_distance": args.lam, "seed": args.seed, "foreground_weight": args.foreground_weight}
     if args.epochs is not None:
         if args.epochs < 1:

@@ -74,16 +74,19 @@ def describe_validation_error(exc: ValidationError, prefix: str = "", first: boo
     return "; ".join(parts)
 
 
-def validate(model: type[C], data: Mapping[str, Any], prefix: str = "") -> C:
+def validate(model: type[C], data: Mapping[str, Any], prefix: str = "",
+             context: Mapping[str, Any] | None = None) -> C:
     """Build ``model`` from ``data``, turning validation failures into :class:`ConfigError`.
 
     ``data`` usually comes from a file; anything but a mapping is a one-line error too.
+    ``context`` reaches the model's validators (e.g. ``specs``: the scenario specs an
+    artifact stored, which stand for their names).
     """
     if not isinstance(data, Mapping):
         where = prefix.rstrip(".") or "config"
         raise ConfigError(f"invalid config: {where}: expected a mapping, got {type(data).__name__}")
     try:
-        return model.model_validate(dict(data))
+        return model.model_validate(dict(data), context=dict(context) if context is not None else None)
     except ValidationError as exc:
         raise ConfigError("invalid config: " + describe_validation_error(exc, prefix)) from None
 

@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 from pydantic import Field
 
-from latentdrive.actions import IDLE, N_ACTIONS
+from latentdrive.actions import N_ACTIONS, idle_when_done
 from latentdrive.config import Config, ConfigError, ObservationConfig, merge_overrides, validate
 from latentdrive.observe import FrameStack, render_frame
 from latentdrive.reward import agent_rewards, episode_end
@@ -132,8 +132,7 @@ class Episode:
         actions = np.asarray(action, dtype=np.int64).reshape(-1)
         if actions.shape != (self.spec.n_av,) or actions.min() < 0 or actions.max() >= N_ACTIONS:
             raise ValueError(f"action must be {self.spec.n_av} integers in [0, {N_ACTIONS}), got {action!r}")
-        # What an AV that has finished is told to do must not change the simulation.
-        return np.where(self.active, actions, IDLE)
+        return idle_when_done(actions, ~self.active)
 
     def advance(self, scene: Scene) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Account for one policy step that led to ``scene``."""

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The README's "Does it learn?" results: a BNN on fast-backend data, then raw and latent
+# The "Does it learn?" results of docs/learning.md: a BNN on fast-backend data, then raw and latent
 # policies on intersection and merge, each evaluated on 200 held-out episodes per scenario
 # beside the reference policies, with the paired comparison. Rerunning resumes.
 # Usage: scripts/learning.sh [OUT] (default runs/learning); STEPS=40000 by default.

@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The README's speed-up from 1 to 2 workers, in local mode and on a local Ray instance:
+# docs/cluster.md's speed-up from 1 to 2 workers, in local mode and on a local Ray instance:
 # the tiny study with 1,500 agent-transitions per policy, run from scratch four times.
 # Usage: scripts/speedup.sh [OUT] (default runs/speedup); MODES="local ray" by default.
 # Prints one line per run.

@@ -159,7 +159,7 @@ CASES = [
     ("dataset-is-a-file", "train-bnn {w}/a_file {w}/new_run", "manifest"),
     ("unit-huge-episode", "train-bnn {w}/ds_huge_episode {w}/new_run", "first_episode must be an integer >= 0 and < 2**62"),
     ("val-fraction-out-of-range", "train-bnn {w}/ds {w}/new_run --val-fraction 1.5", "--val-fraction"),
-    ("val-fraction-zero", "train-bnn {w}/ds {w}/new_run --val-fraction 0", "--val-fraction must be in (0, 1)"),
+    ("val-fraction-zero", "train-bnn {w}/ds {w}/new_run --val-fraction 0", "--val-fraction) must be in (0, 1)"),
     ("nothing-to-hold-out", "train-bnn {w}/ds_one_episode {w}/new_run", "no validation episodes at val_fraction 0.15"),
     # Runs that hold an unusable checkpoint: refused before split.json is rewritten.
     ("resume-garbage-checkpoint", "train-bnn {w}/ds {w}/run_garbage --resume", "not a safetensors file"),

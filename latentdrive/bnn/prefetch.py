@@ -3,10 +3,11 @@
 Training reads its batches from compressed shards; decompressing and dequantizing them
 costs about a third of a small model's CPU step. Both release the GIL, so a thread can
 prepare the next batches while the optimizer step runs. Order and content are those of
-the wrapped iterator, so results do not change. On a 2-core CPU where torch already uses
-both cores the gain is small: two epochs of the study's d = 64 ran at 334 and 313
-samples/s without read-ahead and 335 and 341 with it. It is meant for setups where the
-model leaves CPU cores idle (training on a GPU); that case is not measured here.
+the wrapped iterator, so results do not change. Where torch already keeps every CPU core
+busy the gain is expected to be small; it is meant for setups where the model leaves CPU
+cores idle (training on a GPU). To see what it does on a machine, train the same BNN with
+``latentdrive train-bnn DATASET RUN --set prefetch=0`` and with the default read-ahead:
+each prints its samples/s on its last line.
 """
 
 from __future__ import annotations

@@ -43,7 +43,7 @@ from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
 from latentdrive.bnn.losses import CellWeights, LossKind, step_losses
 from latentdrive.bnn.prefetch import prefetch
 from latentdrive.bnn.resume import CHECKPOINT_NAME, check_run_dir, saved_configs
-from latentdrive.bnn.runlog import Meter, MetricsLog, peak_rss_mb
+from latentdrive.bnn.runlog import Meter, metrics_log, peak_rss_mb, write_metrics
 from latentdrive.config import Config, config_hash, validate
 from latentdrive.fileio import atomic_write_text
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
@@ -363,7 +363,7 @@ def _train(
             "train_hash": config_hash(cfg),
         }
         atomic_write_text(run / CONFIG_NAME, json.dumps(configs, indent=2, sort_keys=True) + "\n")
-        log = MetricsLog(run, step if resumed else None, logged)
+        log = metrics_log(run, step if resumed else None, logged)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
 
@@ -406,7 +406,7 @@ def _train(
                     window.add(vals, int(b.noisy.shape[0]), dt)
                     if step % cfg.log_every == 0:
                         loss_m, recon_m, reg_m = window.means()
-                        log.write({
+                        write_metrics(log, {
                             "kind": "step", "phase": phase, "epoch": epoch, "step": step,
                             "loss": loss_m, "recon": recon_m, "reg": reg_m,
                             "lr": optimizer.param_groups[0]["lr"],
@@ -439,7 +439,7 @@ def _train(
                 }
                 if device.type == "cuda":
                     last["peak_cuda_mb"] = torch.cuda.max_memory_allocated(device) / 2**20
-                log.write({
+                write_metrics(log, {
                     "kind": "epoch", "phase": phase, "epoch": epoch, "step": step,
                     "loss": last["train_loss"], "recon": last["train_recon"],
                     "reg": last["train_reg"],

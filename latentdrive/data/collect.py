@@ -21,7 +21,7 @@ import re
 import sys
 import time
 import zlib
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from concurrent.futures import ProcessPoolExecutor, as_completed
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 from pydantic import Field, ValidationInfo, field_validator
 
-from latentdrive.config import Config, ConfigError, config_hash, merge_overrides
+from latentdrive.config import Config, ConfigError, config_hash, merge_overrides, validate
 from latentdrive.data.policies import Behaviour, episode_policy
 from latentdrive.data.shards import (
     FORMAT,
@@ -49,7 +49,7 @@ from latentdrive.env import EnvConfig, make_env_config
 from latentdrive.fileio import confined, is_temp_file
 from latentdrive.rollout import rollout, scene_policy
 from latentdrive.runlock import LOCK_NAME, dir_lock
-from latentdrive.scenarios import SCENARIOS
+from latentdrive.scenarios import SCENARIOS, ScenarioSpec, resolve_specs
 from latentdrive.vec import DrivingVecEnv
 
 __all__ = [
@@ -60,6 +60,7 @@ __all__ = [
     "check_collect_target",
     "collect",
     "dataset_hash",
+    "dataset_specs",
     "episode_seeds",
     "plan_units",
     "resolve_env_configs",
@@ -110,9 +111,11 @@ class CollectConfig(Config):
     @field_validator("env")
     @classmethod
     def _check_env(cls, v: dict[str, Any], info: ValidationInfo) -> dict[str, Any]:
+        # A dataset being resumed supplies the specs it stored (validation context "specs").
+        stored = (info.context or {}).get("specs") or {}
         for name in info.data.get("scenarios", []):
             try:
-                make_env_config(name, **v)
+                make_env_config(stored.get(name, name), **v)
             except ConfigError as exc:
                 raise ValueError(f"scenario {name}: {str(exc).removeprefix('invalid config: ')}") from None
         return v
@@ -124,13 +127,17 @@ def dataset_hash(cfg: CollectConfig) -> str:
     return config_hash(cfg.model_copy(update={"workers": 1}))
 
 
-def resolve_env_configs(cfg: CollectConfig) -> list[EnvConfig]:
+def resolve_env_configs(cfg: CollectConfig, specs: Mapping[str, ScenarioSpec] | None = None) -> list[EnvConfig]:
     """The env config of each scenario, in ``cfg.scenarios`` order, with clean observations on.
+
+    ``specs`` stand for the names they are keyed by (a dataset's stored ones, see
+    :func:`dataset_specs`); other names are presets or spec files.
 
     Raises:
         ConfigError: an override does not apply, or the scenarios' observation shapes differ.
     """
-    out = [make_env_config(name, **merge_overrides(cfg.env, {"clean_observation": True}))
+    resolved = resolve_specs(cfg.scenarios, specs)
+    out = [make_env_config(resolved[name], **merge_overrides(cfg.env, {"clean_observation": True}))
            for name in cfg.scenarios]
     names = [e.scenario.name for e in out]
     if len(set(names)) != len(names):
@@ -357,8 +364,34 @@ def _existing_manifest(root: Path, fresh: dict[str, Any]) -> dict[str, Any] | No
     return manifest
 
 
-def _fresh_manifest(cfg: CollectConfig) -> dict[str, Any]:
-    env_cfgs = resolve_env_configs(cfg)
+def dataset_specs(out_dir: str | Path) -> dict[str, ScenarioSpec]:
+    """The scenario specs a dataset in ``out_dir`` was collected on, keyed by the names of
+    its config (empty when ``out_dir`` holds no dataset yet).
+
+    They are what its manifest recorded, with the config's env overrides applied; applying
+    them again changes nothing, so a resumption from these needs no spec file and meets no
+    later change of a preset.
+
+    Raises:
+        DatasetError: the manifest is corrupt.
+    """
+    root = Path(out_dir)
+    if not (root / MANIFEST).is_file():
+        return {}
+    manifest = read_manifest(root)
+    names = manifest["config"].get("scenarios") if isinstance(manifest["config"], dict) else None
+    envs = manifest["env_configs"]
+    if (not isinstance(names, list) or not isinstance(envs, list) or len(names) != len(envs)
+            or not all(isinstance(n, str) and isinstance(e, dict) for n, e in zip(names, envs, strict=True))):
+        raise DatasetError(f"{root / MANIFEST}: manifest is corrupt (its scenarios and env_configs do not pair up)")
+    try:
+        return {n: validate(ScenarioSpec, e.get("scenario"), prefix="scenario.") for n, e in zip(names, envs, strict=True)}
+    except ConfigError as exc:
+        raise DatasetError(f"{root / MANIFEST}: manifest is corrupt ({exc})") from None
+
+
+def _fresh_manifest(cfg: CollectConfig, specs: Mapping[str, ScenarioSpec] | None = None) -> dict[str, Any]:
+    env_cfgs = resolve_env_configs(cfg, specs)
     return _new_manifest(cfg, dataset_hash(cfg), env_cfgs, plan_units(cfg, env_cfgs))
 
 
@@ -368,7 +401,16 @@ def check_collect_target(cfg: CollectConfig, out_dir: str | Path) -> None:
     For commands that write files of their own beside the dataset: they check first, so
     that a refused dataset leaves everything as it was.
     """
-    _existing_manifest(Path(out_dir), _fresh_manifest(cfg))
+    _existing_manifest(Path(out_dir), _fresh_manifest(cfg, _resumable_specs(cfg, out_dir)))
+
+
+def _resumable_specs(cfg: CollectConfig, out_dir: str | Path) -> dict[str, ScenarioSpec]:
+    """The specs stored by the dataset in ``out_dir`` when ``cfg`` would resume it (same
+    hash); otherwise none, and ``cfg``'s names resolve afresh (and are refused there)."""
+    root = Path(out_dir)
+    if not (root / MANIFEST).is_file() or read_manifest(root)["config_hash"] != dataset_hash(cfg):
+        return {}
+    return dataset_specs(root)
 
 
 def _open_dataset_dir(root: Path, fresh: dict[str, Any], say: Callable[[str], None]) -> dict[str, Any]:
@@ -414,12 +456,12 @@ def collect(cfg: CollectConfig, out_dir: str | Path, progress: bool = True) -> C
         if progress:
             print(msg, file=sys.stderr, flush=True)
 
-    env_cfgs = resolve_env_configs(cfg)
+    if root.exists() and not root.is_dir():
+        raise DatasetError(f"{root}: exists and is not a directory")
+    env_cfgs = resolve_env_configs(cfg, _resumable_specs(cfg, root))
     units = plan_units(cfg, env_cfgs)
     chash = dataset_hash(cfg)
     fresh = _new_manifest(cfg, chash, env_cfgs, units)
-    if root.exists() and not root.is_dir():
-        raise DatasetError(f"{root}: exists and is not a directory")
     # Held until the manifest's last update: a second collect into `root` is refused.
     with dir_lock(root, "collect"):
         manifest = _open_dataset_dir(root, fresh, say)

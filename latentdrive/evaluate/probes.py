@@ -32,12 +32,18 @@ from typing import Any, Literal, NamedTuple, cast
 import numpy as np
 import torch
 from numpy.typing import NDArray
-from pydantic import Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError, field_validator
 
 from latentdrive.bnn.checkpoint import CheckpointError
 from latentdrive.bnn.resume import CHECKPOINT_NAME, saved_configs
 from latentdrive.bnn.train import load_trained_bottleneck
-from latentdrive.config import Config, ConfigError, ObservationConfig, validate
+from latentdrive.config import (
+    Config,
+    ConfigError,
+    ObservationConfig,
+    describe_validation_error,
+    validate,
+)
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.probe_fit import ProbeScore, fit_probes, split_by_episode
 from latentdrive.evaluate.probe_targets import (
@@ -47,6 +53,7 @@ from latentdrive.evaluate.probe_targets import (
     scene_targets,
 )
 from latentdrive.evaluate.run import quotas
+from latentdrive.fileio import MAX_JSON_BYTES, read_json
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.models.vfan import Mode, QNetwork, VFANConfig
 from latentdrive.rollout import Policy, PolicyInput, rollout
@@ -66,6 +73,7 @@ __all__ = [
     "collect_probe_data",
     "fit_probes",
     "probe_features",
+    "read_probe_results",
     "run_probes",
     "split_by_episode",
 ]
@@ -285,4 +293,41 @@ def run_probes(cfg: ProbeConfig, kinds: Sequence[str], bnn_run: str | Path | Non
     out["samples"] = {"train": int(train.sum()), "test": int(test.sum()),
                       "train_episodes": int(np.unique(data.episode[train]).size),
                       "test_episodes": int(np.unique(data.episode[test]).size)}
+    return out
+
+
+class _Loose(BaseModel):
+    model_config = ConfigDict(extra="allow", populate_by_name=True)
+
+
+class _ScoreShape(_Loose):
+    """One target's entry of :func:`run_probes`'s result (further keys allowed)."""
+
+    metric: str
+    value: float | None
+    baseline: float | None
+
+
+class _SamplesShape(_Loose):
+    """The ``samples`` entry of :func:`run_probes`'s result (further keys allowed)."""
+
+    train: int
+    test: int
+
+
+def _checked(path: Path, data: Any, shape: Any, what: str) -> None:
+    try:
+        TypeAdapter(shape).validate_python(data)
+    except ValidationError as exc:
+        raise ConfigError(f"{path}: not a {what} ({describe_validation_error(exc, first=True)})") from None
+
+
+def read_probe_results(path: Path) -> dict[str, Any]:
+    """What :func:`run_probes` returned, as a study step saved it (JSON at ``path``), checked
+    against the shape it writes: a damaged file is a one-line :class:`ConfigError` naming it."""
+    data = read_json(path, limit=MAX_JSON_BYTES, what="probe results", error=ConfigError)
+    _checked(path, data, dict[str, Any], "probe result")
+    _checked(path, data.get("samples"), _SamplesShape, "probe result (samples)")
+    _checked(path, {k: v for k, v in data.items() if k != "samples"}, dict[str, dict[str, _ScoreShape]], "probe result")
+    out: dict[str, Any] = data
     return out

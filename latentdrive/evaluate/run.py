@@ -18,6 +18,7 @@ import numpy as np
 
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rollout import Policy, rollout
+from latentdrive.scenarios import ScenarioSpec
 from latentdrive.seeds import eval_reset_seed
 from latentdrive.vec import make_vec
 
@@ -32,7 +33,7 @@ def quotas(episodes: int, envs: int) -> list[int]:
 
 def evaluate_policy(
     make_policy: Callable[[], Policy],
-    scenarios: Sequence[str],
+    scenarios: Sequence[str | ScenarioSpec],
     episodes: int,
     *,
     envs: int = 16,
@@ -45,6 +46,7 @@ def evaluate_policy(
     """The outcomes of ``episodes`` evaluation episodes per scenario.
 
     Args:
+        scenarios: names (presets or spec files) or specs.
         make_policy: builds a fresh policy per scenario (so a policy with its own random
             stream starts it afresh for each scenario).
         envs: environments per scenario (at most ``episodes``). Part of the definition

@@ -43,6 +43,7 @@ from latentdrive.data.collect import (
     CollectConfig,
     check_collect_target,
     collect,
+    dataset_specs,
     resolve_env_configs,
 )
 from latentdrive.data.dataset import ShardDataset
@@ -127,8 +128,9 @@ def train_on_dataset(
     ``run_dir/split.json``.
     """
     if not 0.0 < val_fraction < 1.0:
-        raise ConfigError(f"val_fraction must be in (0, 1): training validates on the held-out episodes, "
-                          f"got {val_fraction}")
+        # The one check of the range, for the library and `train-bnn --val-fraction` alike.
+        raise ConfigError(f"val_fraction (train-bnn --val-fraction) must be in (0, 1): training validates on "
+                          f"the held-out episodes, got {val_fraction}")
     ds = ShardDataset(dataset_dir)
     train_ids, val_ids = _split(ds, val_fraction, train_cfg.seed)
     if not len(train_ids) or not len(val_ids):
@@ -345,7 +347,8 @@ def read_study_config(out: Path) -> BNNStudyConfig:
     path = out / STUDY_CONFIG
     data = read_json(path, limit=MAX_JSON_BYTES, what="study config", error=ConfigError)
     try:
-        return validate(BNNStudyConfig, data)
+        # The dataset's stored specs stand for the spec files its config names.
+        return validate(BNNStudyConfig, data, context={"specs": dataset_specs(out / "dataset")})
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
 

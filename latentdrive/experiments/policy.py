@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +21,7 @@ from latentdrive.models.vfan import QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.policy import greedy_policy, load_policy_network
 from latentdrive.rollout import Policy, rollout
-from latentdrive.scenarios import RewardConfig
+from latentdrive.scenarios import RewardConfig, ScenarioSpec, resolve_specs
 from latentdrive.seeds import eval_reset_seed
 from latentdrive.vec import make_vec
 
@@ -33,8 +33,11 @@ class EvaluationSet:
 
     def __init__(self, scenarios: Sequence[str], episodes: int, envs: int, backend: str, seed_offset: int,
                  observation: dict[str, Any] | None = None, reward: dict[str, Any] | None = None,
-                 planner: PlannerConfig | None = None) -> None:
+                 planner: PlannerConfig | None = None, specs: Mapping[str, ScenarioSpec] | None = None) -> None:
         self.scenarios, self.episodes, self.envs = list(scenarios), episodes, min(envs, episodes)
+        #: The spec each scenario name stands for (a run's stored copies, else the preset or
+        #: spec file the name gives), resolved once so that every policy meets the same ones.
+        self.specs = resolve_specs(self.scenarios, specs)
         self.backend, self.seed_offset = backend, seed_offset
         self.observation = observation or {}
         #: The runs' reward weights (returns are reported under them; rates do not depend on them).
@@ -53,7 +56,7 @@ class EvaluationSet:
 
     def run(self, make_policy: Callable[[], Policy], progress: Callable[[int], None] | None = None) -> list[EpisodeOutcome]:
         kw = self.env_overrides()
-        return evaluate_policy(make_policy, self.scenarios, self.episodes, envs=self.envs, backend=self.backend,
+        return evaluate_policy(make_policy, [self.specs[n] for n in self.scenarios], self.episodes, envs=self.envs, backend=self.backend,
                                seed_offset=self.seed_offset, progress=progress, **kw)
 
 
@@ -114,7 +117,7 @@ def save_policy_gif(path: str | Path, net: QNetwork | None, make_policy: Callabl
     """One evaluation episode of ``scenario`` as a GIF, seen by agent 0; with the BNN's
     reconstruction when ``net`` has a trained encoder (latent modes)."""
     kw = eval_set.env_overrides()
-    vec = make_vec(scenario, 1, backend=eval_set.backend, **kw)
+    vec = make_vec(eval_set.specs[scenario], 1, backend=eval_set.backend, **kw)
     scenes: list[Any] = []
     observations: list[np.ndarray] = []
     for rec in rollout(vec, make_policy(), seed=eval_reset_seed(eval_set.seed_offset)):

@@ -42,6 +42,8 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
     data = merge_overrides(base, {k: v for k, v in flags.items() if v is not None})
     if args.scenarios:
         data["scenarios"] = _split(args.scenarios)
+        # A resumed run's stored specs stand for the names it keeps.
+        data["specs"] = {k: v for k, v in (data.get("specs") or {}).items() if k in data["scenarios"]}
     data = merge_overrides(data, parse_override_args(args.overrides))
     cfg = validate(PolicyTrainConfig, data)
     result = train_policy(cfg, args.run, resume=args.resume, progress=not args.quiet, say=_say)
@@ -58,6 +60,7 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
 def _cmd_evaluate(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from latentdrive.config import validate
     from latentdrive.evaluate.planner import planner_config_from_args
     from latentdrive.evaluate.policies import (
         REFERENCE_POLICIES,
@@ -79,7 +82,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         read_run_config,
     )
     from latentdrive.runtime import resolve_device
-    from latentdrive.scenarios import SCENARIOS, get_spec
+    from latentdrive.scenarios import SCENARIOS, ScenarioSpec
     from latentdrive.seeds import MAX_ENVS, eval_reset_seed
 
     runs = [args.run] if args.run else []
@@ -113,8 +116,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         scenarios = list(configs[0]["train"]["scenarios"])
     else:
         scenarios = list(SCENARIOS)
-    for name in scenarios:
-        get_spec(name)
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
     if not 1 <= args.envs <= MAX_ENVS:
@@ -133,10 +134,20 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if any(o != observations[0] for o in observations):
         raise ConfigError("the runs use different observation configs; evaluate them separately")
     rewards = [c["train"].get("reward") for c in configs]
+    # A name the first run trained on stands for the spec it stored (it needs no spec file
+    # and no preset of today); --scenarios may name others, resolved as usual.
+    stored = {k: validate(ScenarioSpec, v) for k, v in configs[0]["train"]["specs"].items()} if configs else {}
+    for run, c in zip(runs[1:], configs[1:], strict=True):
+        other = [n for n in scenarios if n in stored and n in c["train"]["specs"]
+                 and c["train"]["specs"][n] != stored[n].model_dump(mode="json")]
+        if other:
+            _say(f"warning: {run} was trained on another spec of {', '.join(other)} than {runs[0]}; "
+                 f"both are evaluated on {runs[0]}'s")
     eval_set = EvaluationSet(scenarios, args.episodes, args.envs, args.backend, args.seed_offset,
                              observation=observations[0] if observations else None,
                              reward=rewards[0] if rewards and all(r == rewards[0] for r in rewards) else None,
-                             planner=planner_config_from_args(args.overrides) if "plan" in references else None)
+                             planner=planner_config_from_args(args.overrides) if "plan" in references else None,
+                             specs=stored)
     if args.overrides and "plan" not in references:
         raise ConfigError("--set planner.* given, but the planner ('plan') is not evaluated")
     device = resolve_device(args.device)

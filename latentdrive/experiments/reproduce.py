@@ -24,6 +24,7 @@ from latentdrive.experiments.study import ReproduceConfig, build_graph
 from latentdrive.experiments.study_report import write_report
 from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
 from latentdrive.runlock import dir_lock
+from latentdrive.scenarios import ScenarioSpec, resolve_specs
 
 __all__ = ["estimate_from", "read_study", "rebuild_report", "run_study"]
 
@@ -64,7 +65,8 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
         raise ConfigError(f"{out}: exists and is not a folder")
     if workers < 1:
         raise ConfigError(f"--workers must be at least 1, got {workers}")
-    graph = build_graph(cfg)
+    graph_specs = resolve_specs(cfg.scenarios)
+    graph = build_graph(cfg, graph_specs)
     if ray:
         from latentdrive.experiments.ray_executor import check_ray_address
 
@@ -86,8 +88,18 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
                 was = f"preset {before_preset}" if before is not None and before_preset else "another config"
                 say(f"note: {out} held a study of {was}; its finished steps are kept and reused where "
                     f"their keys match, and the report will describe the new config")
-        atomic_write_text(out / STUDY, json.dumps({"preset": preset, "config": cfg.model_dump(mode="json")},
-                                                  indent=1) + "\n")
+            try:
+                stored = read_study_specs(out)
+            except ConfigError:
+                stored = {}
+            moved = sorted(n for n in cfg.scenarios if n in stored and stored[n] != graph_specs[n])
+            if moved:
+                say(f"note: the spec of {', '.join(moved)} changed since {out} ran; the steps that use it run again")
+        # The resolved specs, beside the config that names them: the study reports from
+        # these wherever its folder lies, whatever later versions make of the presets.
+        record = {"preset": preset, "config": cfg.model_dump(mode="json"),
+                  "specs": {n: s.model_dump(mode="json") for n, s in graph_specs.items()}}
+        atomic_write_text(out / STUDY, json.dumps(record, indent=1) + "\n")
         t0 = time.perf_counter()
         if ray:
             from latentdrive.experiments.ray_executor import run_ray
@@ -133,6 +145,19 @@ def read_study(out: Path) -> tuple[ReproduceConfig, str]:
         raise ConfigError(f"{path}: {exc}") from None
 
 
+def read_study_specs(out: Path) -> dict[str, ScenarioSpec]:
+    """The scenario specs a study in ``out`` ran on (empty for a study that predates the record)."""
+    path = out / STUDY
+    data = read_json(path, limit=MAX_JSON_BYTES, what="study record", error=ConfigError)
+    specs = data.get("specs", {}) if isinstance(data, dict) else None
+    if not isinstance(specs, dict):
+        raise ConfigError(f"{path}: not a study record (specs is not a mapping)")
+    try:
+        return {str(n): validate(ScenarioSpec, s, prefix=f"specs.{n}.") for n, s in specs.items()}
+    except ConfigError as exc:
+        raise ConfigError(f"{path}: {exc}") from None
+
+
 def rebuild_report(out: str | Path, say: Callable[[str], None] = print) -> dict[str, Any]:
     """``latentdrive report OUT``: results, report and figures again from the finished steps."""
     out = Path(out)
@@ -144,7 +169,7 @@ def rebuild_report(out: str | Path, say: Callable[[str], None] = print) -> dict[
         previous = meta.get("last_run", {}) if isinstance(meta, dict) else {}
     except (FileNotFoundError, ConfigError):
         pass  # rebuilding is what a missing or damaged results.json needs
-    return _report(cfg, build_graph(cfg), out, preset, previous, say)
+    return _report(cfg, build_graph(cfg, read_study_specs(out)), out, preset, previous, say)
 
 
 def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int],
@@ -162,7 +187,7 @@ def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]
         a, b = m_cfg.observation.model_dump(), cfg.observation.model_dump()
         diff = ", ".join(f"{k} {a[k]} there, {b[k]} here" for k in a if a[k] != b[k])
         raise ConfigError(f"{measured} measured other observations ({diff}): its step times do not carry over")
-    m_graph = build_graph(m_cfg)
+    m_graph = build_graph(m_cfg, read_study_specs(Path(measured)))
     records = {n: r for n in m_graph.order if (r := m_graph.record(measured, n)) is not None}
     if not records:
         raise ConfigError(f"{measured}: no finished step to measure")

@@ -14,11 +14,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, TypeAdapter, ValidationError
 from scipy.stats import spearmanr
 
-from latentdrive.config import ConfigError, describe_validation_error
+from latentdrive.config import ConfigError
 from latentdrive.evaluate.aggregate import seed_interval
+from latentdrive.evaluate.probes import read_probe_results
 from latentdrive.evaluate.stats import json_values, paired_test, rate_ci
 from latentdrive.experiments.bnn_report import read_report
 from latentdrive.experiments.graph import Graph, StepRecord
@@ -30,7 +30,7 @@ from latentdrive.experiments.study import (
     policy_name,
     reference_name,
 )
-from latentdrive.fileio import MAX_JSON_BYTES, read_json, read_log
+from latentdrive.fileio import read_json, read_log
 from latentdrive.outcome import EpisodeOutcome, outcomes_from_json
 from latentdrive.rl.train import EVAL_COLUMNS, EVALS
 
@@ -56,40 +56,6 @@ def _load(path: Path, eval_cfg: Mapping[str, Any]) -> Episodes:
         if n != eval_cfg["episodes"]:
             raise ConfigError(f"{path}: {n} episodes of {scen}, not the {eval_cfg['episodes']} its step ran")
     return eps
-
-
-class _Loose(BaseModel):
-    model_config = ConfigDict(extra="allow", populate_by_name=True)
-
-
-class _ProbeScore(_Loose):
-    metric: str
-    value: float | None
-    baseline: float | None
-
-
-class _ProbeSamples(_Loose):
-    train: int
-    test: int
-
-
-def _checked(path: Path, data: Any, shape: Any, what: str) -> Any:
-    """``data`` (read from ``path``) if it has ``shape``, else a one-line error naming the file."""
-    try:
-        TypeAdapter(shape).validate_python(data)
-    except ValidationError as exc:
-        raise ConfigError(f"{path}: not a {what} ({describe_validation_error(exc, first=True)})") from None
-    return data
-
-
-def _read_probes(path: Path) -> dict[str, Any]:
-    data = read_json(path, limit=MAX_JSON_BYTES, what="probe results", error=ConfigError)
-    _checked(path, data, dict[str, Any], "probe result")
-    _checked(path, data.get("samples"), _ProbeSamples, "probe result (samples)")
-    _checked(path, {k: v for k, v in data.items() if k != "samples"}, dict[str, dict[str, _ProbeScore]],
-             "probe result")
-    out: dict[str, Any] = data
-    return out
 
 
 def _subset(eps: Episodes, test: str) -> Episodes:
@@ -265,7 +231,7 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
         res["ablations"] = {v: st.kind(v, MIXED, [MIXED])[MIXED] for v in variants}
 
     if exp.probe_episodes:
-        res["probes"] = _read_probes(graph.folder(out, "probes") / PROBES)
+        res["probes"] = read_probe_results(graph.folder(out, "probes") / PROBES)
 
     if cfg.evaluate.cross_backend_episodes:
         cross: dict[str, Any] = {}

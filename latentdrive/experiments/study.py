@@ -17,6 +17,7 @@ same few episodes (``cross/<backend>/<policy>``).
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +37,13 @@ from latentdrive.experiments.bnn import BNNStudyConfig, run_name, study_runs
 from latentdrive.experiments.graph import Graph, Step
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.rl.policy import scenario_hashes
-from latentdrive.scenarios import SCENARIOS, RewardConfig, check_scenario_names
+from latentdrive.scenarios import (
+    SCENARIOS,
+    RewardConfig,
+    ScenarioSpec,
+    check_scenario_names,
+    resolve_specs,
+)
 
 __all__ = ["PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config", "policy_name", "reference_name"]
 
@@ -163,9 +170,14 @@ def reference_name(ref: str) -> str:
     return f"evaluate/ref/{ref}"
 
 
-def build_graph(cfg: ReproduceConfig) -> Graph:
-    """Every step of the study, with its resolved config and inputs."""
-    specs = scenario_hashes(cfg.scenarios)
+def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] | None = None) -> Graph:
+    """Every step of the study, with its resolved config and inputs.
+
+    Steps are keyed by the hashes of the scenarios' specs: those ``specs_stored`` holds (a
+    study folder's record, so that it reports from the specs it ran on wherever it lies),
+    else today's presets.
+    """
+    specs = scenario_hashes(resolve_specs(cfg.scenarios, specs_stored))
     steps: list[Step] = []
     obs = cfg.observation.model_dump(mode="json")
     collect = cfg.bnn.collect.model_dump(mode="json")
@@ -199,7 +211,10 @@ def build_graph(cfg: ReproduceConfig) -> Graph:
     def policy(rep: str, train_set: str, scenarios: tuple[str, ...], seed: int, steps_: int, init: str | None = None) -> str:
         mode = "latent" if rep == "latent-lam" else rep
         pcfg = cfg.policy_config(mode, scenarios, seed, steps_, finetune=init is not None).model_dump(mode="json")
+        # The step's key holds the specs' hashes ("specs"); the run fills in the specs
+        # themselves and stores them in its own config.json.
         pcfg.update(bnn=None, init_from=None)
+        del pcfg["specs"]
         inputs = {"bnn": bnn_for[rep]} if rep in bnn_for else {}
         if init is not None:
             inputs["init"] = init

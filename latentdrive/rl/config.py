@@ -4,13 +4,18 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from latentdrive.config import Config, ConfigError, ObservationConfig
 from latentdrive.models.vfan import MODES, Mode, VFANConfig
 from latentdrive.rl.dqn import DQNConfig
 from latentdrive.runtime import PRECISIONS, Precision, check_device
-from latentdrive.scenarios import RewardConfig, check_scenario_names
+from latentdrive.scenarios import (
+    RewardConfig,
+    ScenarioSpec,
+    get_spec,
+    resolve_specs,
+)
 
 __all__ = ["PolicyTrainConfig", "check_mission_pays"]
 
@@ -19,6 +24,7 @@ class PolicyTrainConfig(Config):
     """Everything that defines a policy training run; saved in the run's config.json."""
 
     mode: Mode = Field("latent", description=f"Input representation: {', '.join(MODES)}.")
+    specs: dict[str, ScenarioSpec] = Field(default_factory=dict, description="The resolved spec of each of scenarios, keyed by its entry there. Filled from the presets and spec files when a run is configured and saved in its config.json, so the run trains, resumes and evaluates on these copies wherever its folder lies.")
     scenarios: tuple[str, ...] = Field(("merge",), min_length=1, description="Scenarios to train on. Environment slot i plays scenarios[i % len]: every vector step holds an equal mix.")
     steps: int = Field(50_000, ge=1, le=10**10, description="Budget in agent-transitions (one AV's one policy step), so budgets compare across AV counts.")
     seed: int = Field(0, ge=0, le=2**31 - 1, description="Seed of the weights, exploration, replay sampling and training episodes.")
@@ -40,8 +46,28 @@ class PolicyTrainConfig(Config):
 
     @field_validator("scenarios")
     @classmethod
-    def _known(cls, v: tuple[str, ...]) -> tuple[str, ...]:
-        return check_scenario_names(v)
+    def _known(cls, v: tuple[str, ...], info: ValidationInfo) -> tuple[str, ...]:
+        if len(set(v)) != len(v):
+            raise ValueError(f"scenarios repeat a name: {', '.join(v)}")
+        stored = info.data.get("specs") or {}
+        for name in v:
+            if name not in stored:
+                get_spec(name)  # a one-line error naming an unknown name or a missing spec file
+        return v
+
+    @model_validator(mode="after")
+    def _complete_specs(self) -> PolicyTrainConfig:
+        extra = sorted(set(self.specs) - set(self.scenarios))
+        if extra:
+            raise ValueError(f"specs: {extra[0]!r} is not one of scenarios")
+        # The model is frozen, but its dict was built by this validation: completing it
+        # here is what makes every validated config carry the specs it trains on.
+        self.specs.update(resolve_specs([n for n in self.scenarios if n not in self.specs]))
+        return self
+
+    def scenario_specs(self) -> list[ScenarioSpec]:
+        """The spec of each of ``scenarios``, in order."""
+        return [self.specs[name] for name in self.scenarios]
 
     _check_device = field_validator("device")(check_device)
 

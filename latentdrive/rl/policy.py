@@ -1,8 +1,9 @@
 """Building a Q-network for a run, acting with it, and loading a trained one.
 
-A policy run directory holds ``config.json`` (the resolved :class:`PolicyTrainConfig`, the
-encoder's architecture and the parameter counts) and ``checkpoint.safetensors``, whose
-model tensors include the encoder: a run is self-contained once trained.
+A policy run directory holds ``config.json`` (the resolved :class:`PolicyTrainConfig` with
+the spec of every scenario it trains on, the encoder's architecture and the parameter
+counts) and ``checkpoint.safetensors``, whose model tensors include the encoder: a run is
+self-contained once trained, and evaluates and resumes wherever its folder lies.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rollout import Policy, PolicyInput
 from latentdrive.runtime import autocast
-from latentdrive.scenarios import get_spec
+from latentdrive.scenarios import ScenarioSpec, get_spec
 
 __all__ = [
     "CHECKPOINT",
@@ -172,7 +173,8 @@ def read_run_config(run_dir: str | Path) -> dict[str, Any]:
 
     Its ``train`` section is validated (and completed with the defaults of fields it
     predates), so callers may index it without meeting a hand-edited or damaged file's
-    missing keys.
+    missing keys. A run that predates stored scenario specs gets today's, and
+    ``specs_stored`` False.
     """
     path = Path(run_dir) / CONFIG
     try:
@@ -185,19 +187,21 @@ def read_run_config(run_dir: str | Path) -> dict[str, Any]:
         train = validate(PolicyTrainConfig, data["train"])
     except ConfigError as exc:
         raise ConfigError(f"{path}: {exc}") from None
-    return {**data, "train": train.model_dump(mode="json")}
+    return {**data, "train": train.model_dump(mode="json"), "specs_stored": "specs" in data["train"]}
 
 
-def scenario_hashes(scenarios: Sequence[str]) -> dict[str, str]:
-    """Today's hash of each named scenario's spec (a run records the ones it trained on)."""
-    return {name: config_hash(get_spec(name)) for name in scenarios}
+def scenario_hashes(scenarios: Sequence[str] | dict[str, ScenarioSpec]) -> dict[str, str]:
+    """The hash of each scenario's spec: of the given specs, or of today's spec of each name."""
+    specs = scenarios if isinstance(scenarios, dict) else {name: get_spec(name) for name in scenarios}
+    return {name: config_hash(spec) for name, spec in specs.items()}
 
 
 def changed_scenarios(run_config: dict[str, Any]) -> list[str]:
-    """The training scenarios of a run (its config.json) whose spec changed since it was
-    trained; empty for runs that predate the record."""
+    """The training scenarios of a run (its config.json, as :func:`read_run_config` gives
+    it) whose spec changed since it was trained. Empty for a run that stores its specs (it
+    trains and evaluates on those) and for one that predates the record of their hashes."""
     old = run_config.get("scenario_hashes")
-    if not isinstance(old, dict):
+    if run_config.get("specs_stored", True) or not isinstance(old, dict):
         return []
     now = scenario_hashes(run_config["train"]["scenarios"])
     return sorted(n for n, h in now.items() if old.get(n) != h)

@@ -13,8 +13,6 @@ experience per segment and nothing in correctness.
 from __future__ import annotations
 
 import copy
-import csv
-import io
 import json
 import re
 import time
@@ -33,11 +31,13 @@ from latentdrive.bnn.checkpoint import (
     save_checkpoint,
     tensors_digest,
 )
-from latentdrive.config import ConfigError, config_hash
+from latentdrive.bnn.runlog import RunLog
+from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.errors import first_line
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined, read_log
+from latentdrive.models.bottleneck import BottleneckConfig
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
@@ -283,8 +283,8 @@ def _write_config(run_dir: Path, cfg: PolicyTrainConfig, net: QNetwork, enc: Any
         "encoder": None if enc is None else enc.model_dump(mode="json"),
         "parameters": net.parameter_count(),
         "config_hash": config_hash(cfg),
-        # Scenarios are named in the config; their specs can change between versions.
-        "scenario_hashes": scenario_hashes(cfg.scenarios),
+        # The specs themselves are in "train"; their hashes let a glance tell two runs' apart.
+        "scenario_hashes": scenario_hashes(cfg.specs),
     }
     atomic_write_text(run_dir / CONFIG, json.dumps(data, indent=1) + "\n")
 
@@ -310,6 +310,12 @@ def _check_resume(run_dir: Path, cfg: PolicyTrainConfig) -> None:
                               f"run's {saved.get('bnn')})")
 
 
+def _stored_encoder(run_dir: Path) -> BottleneckConfig | None:
+    """The encoder architecture a run's config.json records (its weights are in the checkpoint)."""
+    data = read_run_config(run_dir)
+    return validate(BottleneckConfig, data["encoder"]) if data.get("encoder") else None
+
+
 def _same_encoder(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
     """The frozen encoder weights of two latent-mode networks are equal."""
     keys = [k for k in a if k.startswith("encoder.")]
@@ -330,48 +336,11 @@ def _read_logs(run_dir: Path) -> dict[str, list[dict[str, str]]]:
     return logs
 
 
-class _Log:
-    """metrics.csv, eval.csv and TensorBoard scalars.
-
-    ``kept`` holds the rows (of :func:`_read_logs`) that a resumed run keeps, those up to
-    its checkpoint; ``resume_at`` is that checkpoint's transitions (None for a new run).
-    """
-
-    def __init__(self, run_dir: Path, kept: dict[str, list[dict[str, str]]], resume_at: int | None) -> None:
-        self.files = {}
-        for name, (_, cols) in _LOGS.items():
-            path = run_dir / name
-            buf = io.StringIO()
-            w = csv.DictWriter(buf, fieldnames=cols, extrasaction="ignore", lineterminator="\n")
-            w.writeheader()
-            w.writerows(kept.get(name, []))
-            atomic_write_text(path, buf.getvalue())
-            fh = path.open("a", newline="")
-            self.files[name] = (fh, csv.DictWriter(fh, fieldnames=cols, extrasaction="ignore"))
-        from torch.utils.tensorboard import SummaryWriter
-
-        self.tb = SummaryWriter(str(run_dir / "tb"), purge_step=resume_at or 0)
-
-    def write(self, name: str, row: dict[str, Any]) -> None:
-        fh, w = self.files[name]
-        w.writerow(row)
-        fh.flush()
-        prefix = "train" if name == METRICS else f"eval/{row.get('scenario', '')}"
-        for k, v in row.items():
-            if isinstance(v, float | int) and k != "transitions" and v == v:
-                self.tb.add_scalar(f"{prefix}/{k}", v, int(row["transitions"]))
-
-    def close(self) -> None:
-        for fh, _ in self.files.values():
-            fh.close()
-        self.tb.close()
-
-
 def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> dict[str, Any]:
     net.eval()
     # Validation episodes when a search scores this run, an evaluation set otherwise.
     reset_seed = validation_reset_seed(0) if cfg.eval_seeds == "validation" else None
-    outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenarios, cfg.eval_episodes,
+    outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenario_specs(), cfg.eval_episodes,
                                envs=min(16, cfg.eval_episodes), backend=cfg.backend, seed_offset=TRAINING_EVAL_OFFSET,
                                reset_seed=reset_seed, observation=cfg.observation.model_dump(),
                                reward=cfg.reward.model_dump())
@@ -410,7 +379,10 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
     if resume and not (root / CHECKPOINT).exists():
         raise ConfigError(f"{root}: nothing to resume (no {CHECKPOINT})")
     device = resolve_device(cfg.device)
-    enc = encoder_config(cfg)  # validates the BNN before anything is written
+    # A resumed run's checkpoint holds its encoder's weights: it needs its BNN folder only
+    # if that is still there (to check it), not when the run was moved without it.
+    bnn_gone = resume and cfg.bnn is not None and not (Path(cfg.bnn) / CHECKPOINT).exists()
+    enc = _stored_encoder(root) if bnn_gone else encoder_config(cfg)  # checked before anything is written
     if resume:
         _check_resume(root, cfg)
     else:
@@ -418,23 +390,23 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
     init_state = _init_weights(cfg) if cfg.init_from and not resume else None
     root.mkdir(parents=True, exist_ok=True)
     with dir_lock(root, "train-policy"), torch_settings(True, device, cfg.threads):
-        net = build_network(cfg, enc).to(device)
+        net = build_network(cfg, enc, load_bnn_weights=not bnn_gone).to(device)
         if init_state is not None:
             try:
                 net.load_state_dict(init_state)
             except RuntimeError:
                 raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's") from None
-        vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend,
+        vec = make_vec(cfg.scenario_specs(), cfg.envs, backend=cfg.backend,
                        observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
         learner = Learner(cfg, net, device, cfg.envs * vec.n_av)
         # Everything a resumption reads is checked before anything is written.
         logs = _read_logs(root) if resume else {}
         segment = learner.load(root) if resume else 0
-        kept = {name: [r for r in rows if int(r["transitions"]) <= learner.transitions] for name, rows in logs.items()}
         _write_config(root, cfg, net, enc)
         if not resume:
             say(f"{cfg.mode}: {net.parameter_count()} parameters")
-        log = _Log(root, kept, learner.transitions if resume else None)
+        log = RunLog(root, {name: cols for name, (_, cols) in _LOGS.items()}, "transitions",
+                     learner.transitions if resume else None, logs)
         try:
             return _run(cfg, root, net, learner, vec, segment, device, log, progress, on_eval)
         finally:
@@ -443,7 +415,7 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
 
 
 def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, vec: Any, segment: int,
-         device: torch.device, log: _Log, progress: bool, on_eval: EvalCallback | None) -> TrainResult:
+         device: torch.device, log: RunLog, progress: bool, on_eval: EvalCallback | None) -> TrainResult:
     from tqdm import tqdm
 
     bar = tqdm(total=cfg.steps, initial=min(learner.transitions, cfg.steps), unit="tr", disable=not progress,
@@ -474,7 +446,7 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
             "transitions_per_s": (learner.transitions - start_transitions) / max(elapsed, 1e-9),
             "elapsed_s": round(elapsed, 2),
         }
-        log.write(METRICS, row)
+        log.write(METRICS, row, "train")
         final = learner.transitions >= cfg.steps
         evaluated = final or bool(cfg.eval_every and (segment + 1) % cfg.eval_every == 0)
         if evaluated:
@@ -484,7 +456,7 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
                                   "failure_rate": summary["failure_rate"]["rate"],
                                   "crash_rate": summary["crash_rate"]["rate"],
                                   "success_rate": summary["success_rate"]["rate"],
-                                  "mean_return": summary["mean_return"]["mean"]})
+                                  "mean_return": summary["mean_return"]["mean"]}, f"eval/{name}")
             mixed = last_eval["mixed"]
             bar.set_postfix(fail=f"{mixed['failure_rate']['rate']:.2f}", crash=f"{mixed['crash_rate']['rate']:.2f}")
         learner.save(root, segment)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping, Sequence
 from functools import cache
 from pathlib import Path
 from typing import Any
@@ -30,6 +31,7 @@ __all__ = [
     "SpawnRegion",
     "check_scenario_names",
     "get_spec",
+    "resolve_specs",
 ]
 
 _PRESETS = Path(__file__).parent / "presets"
@@ -68,3 +70,17 @@ def check_scenario_names(names: tuple[str, ...]) -> tuple[str, ...]:
     if len(set(names)) != len(names):
         raise ValueError(f"scenarios repeat a name: {', '.join(names)}")
     return names
+
+
+def resolve_specs(names: Sequence[str], stored: Mapping[str, ScenarioSpec] | None = None) -> dict[str, ScenarioSpec]:
+    """The spec of each of ``names``: the copy ``stored`` holds for it (what a run, dataset
+    or study recorded when it was made), else the preset or spec file the name gives.
+
+    A run folder evaluates and resumes from its stored copies, so it needs neither the spec
+    file it was configured with nor today's version of a preset.
+
+    Raises:
+        ConfigError: a name is neither stored, nor a preset, nor a readable spec file.
+    """
+    stored = stored or {}
+    return {name: stored[name] if name in stored else get_spec(name) for name in names}

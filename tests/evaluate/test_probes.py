@@ -362,3 +362,23 @@ def test_run_probes_end_to_end() -> None:
                 assert 0.0 <= score["value"] <= 1.0
     with pytest.raises(ConfigError, match="needs a trained BNN"):
         run_probes(cfg, ["latent"])
+
+
+def test_saved_probe_results_are_checked_against_the_shape_run_probes_writes(tmp_path):
+    import json
+
+    from latentdrive.config import ConfigError
+    from latentdrive.evaluate.probes import read_probe_results
+
+    good = {"raw": {"speed": {"metric": "r2", "value": 0.5, "baseline": None, "penalty": 1.0, "n_train": 3, "n_test": 2}},
+            "samples": {"train": 3, "test": 2, "train_episodes": 1, "test_episodes": 1}}
+    path = tmp_path / "probes.json"
+    path.write_text(json.dumps(good))
+    assert read_probe_results(path) == good
+    for bad, needle in ((dict(good, samples={"train": "many", "test": 2}), "samples"),
+                        (dict(good, raw={"speed": {"metric": "r2"}}), "value"),
+                        ([1, 2], "not a probe result")):
+        path.write_text(json.dumps(bad))
+        with pytest.raises(ConfigError, match=needle) as err:
+            read_probe_results(path)
+        assert str(path) in str(err.value) and "\n" not in str(err.value)

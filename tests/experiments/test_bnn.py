@@ -198,3 +198,24 @@ def test_a_study_rerun_that_would_be_refused_writes_nothing(tiny_study, change, 
     with pytest.raises(LatentDriveError, match=needle):
         run_bnn_study(cfg.replace(**change), out, progress=False, say=lambda s: None)
     assert _files(out) == before
+
+
+def test_a_study_of_a_spec_file_reads_its_config_from_the_dataset_s_stored_specs(tiny_study, tmp_path):
+    # As if collected from a spec file that is gone: the study's config names the file,
+    # and the dataset's manifest stored its spec under that name.
+    import shutil
+
+    from latentdrive.experiments.bnn import STUDY_CONFIG, read_study_config
+
+    out, _, _ = tiny_study
+    copy = tmp_path / "study"
+    shutil.copytree(out, copy)
+    first = json.loads((copy / STUDY_CONFIG).read_text())["collect"]["scenarios"][0]
+    for path, key in ((copy / STUDY_CONFIG, "collect"), (copy / "dataset" / "manifest.json", "config")):
+        data = json.loads(path.read_text())
+        data[key]["scenarios"] = ["gone.yaml" if s == first else s for s in data[key]["scenarios"]]
+        path.write_text(json.dumps(data))
+    assert read_study_config(copy).collect.scenarios[0] == "gone.yaml"
+    shutil.rmtree(copy / "dataset")
+    with pytest.raises(ConfigError, match=r"gone\.yaml: no such config file"):
+        read_study_config(copy)

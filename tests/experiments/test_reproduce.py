@@ -155,3 +155,50 @@ def test_a_damaged_step_result_is_a_one_line_error_and_the_report_is_kept(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and file in err[0] and needle in err[0], err
     assert (out / "report.md").read_bytes() == report
+
+
+def test_a_moved_study_reports_resumes_and_evaluates_from_another_directory(
+        tiny_study: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    from latentdrive.experiments.reproduce import read_study_specs
+    from latentdrive.scenarios import get_spec
+
+    before = _numbers(tiny_study)
+    moved = tmp_path / "moved" / "study"
+    shutil.copytree(tiny_study, moved)
+    stored = read_study_specs(moved)
+    assert stored == {n: get_spec(n) for n in ("roundabout", "intersection", "merge")}
+    (tmp_path / "elsewhere").mkdir()
+    monkeypatch.chdir(tmp_path / "elsewhere")
+    graph = build_graph(load_reproduce_config("tiny"), stored)
+    stamps = {n: (graph.folder(moved, n) / "done.json").stat().st_mtime_ns for n in graph.order}
+    assert main(["reproduce", str(moved), "--preset", "tiny", "-q"]) == 0  # nothing left to run
+    assert stamps == {n: (graph.folder(moved, n) / "done.json").stat().st_mtime_ns for n in graph.order}
+    (moved / "report.md").unlink()
+    assert main(["report", str(moved)]) == 0 and _numbers(moved) == before
+    # A latent policy of the moved study evaluates from here: its run stores its specs and
+    # its encoder, so neither the study's former path nor its BNN folder is needed.
+    run = graph.folder(moved, "policy/latent/mixed/s0") / "run"
+    assert set(json.loads((run / "config.json").read_text())["train"]["specs"]) == set(stored)
+    shutil.rmtree(graph.folder(moved, graph.steps["policy/latent/mixed/s0"].inputs["bnn"]))
+    assert main(["evaluate", str(run), "--policy", "none", "--episodes", "1", "-q"]) == 0
+
+
+def test_a_study_reports_from_the_specs_it_stored_not_todays_presets(
+        tiny_study: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import latentdrive.scenarios as scenarios
+
+    before = _numbers(tiny_study)
+    copy = tmp_path / "study"
+    shutil.copytree(tiny_study, copy)
+    # As if a later version changed a preset: the steps it keys are not this study's.
+    real = scenarios._preset
+
+    def later(name: str) -> dict:
+        data = dict(real(name))
+        return {**data, "n_hv": data["n_hv"] + 1} if name == "merge" else data
+
+    monkeypatch.setattr(scenarios, "_preset", later)
+    today = build_graph(load_reproduce_config("tiny"))
+    assert today.record(copy, "evaluate/ref/random") is None
+    (copy / "report.md").unlink()
+    assert main(["report", str(copy)]) == 0 and _numbers(copy) == before

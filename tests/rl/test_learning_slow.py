@@ -1,4 +1,4 @@
-"""Real learning, at the budget the README reports (slow: about 15 minutes on 2 CPU cores).
+"""Real learning, at the budget docs/learning.md reports (slow: about 15 minutes on 2 CPU cores).
 
 The raw policy of ``scripts/learning.sh`` on intersection must fail significantly less
 often than the random policy on the same 200 held-out episodes (McNemar's exact test).

@@ -178,7 +178,9 @@ def test_resume_refuses_a_run_whose_scenario_spec_changed(tmp_path, capsys, raw_
     shutil.copytree(raw_run, run)
     cfg = json.loads((run / "config.json").read_text())
     assert set(cfg["scenario_hashes"]) == {"intersection"}
-    cfg["scenario_hashes"]["intersection"] = "0" * 16  # as if trained on an earlier spec
+    # As if trained on an earlier spec, by a version that stored only its hash.
+    cfg["scenario_hashes"]["intersection"] = "0" * 16
+    del cfg["train"]["specs"]
     (run / "config.json").write_text(json.dumps(cfg))
     _fails(capsys, ["train-policy", str(run), "--resume", "--steps", "200"], "scenario spec of intersection changed",
            tmp_path)
@@ -209,6 +211,12 @@ def test_evaluating_a_run_whose_scenario_changed_warns(capsys, tmp_path, raw_run
     cfg = json.loads((run / "config.json").read_text())
     scenario = cfg["train"]["scenarios"][0]
     cfg["scenario_hashes"][scenario] = "0" * 16
+    # A run that stores its specs is evaluated on them: nothing to warn about.
+    (run / "config.json").write_text(json.dumps(cfg))
+    assert main(["evaluate", str(run), "--policy", "none", "--episodes", "1", "-q"]) == 0
+    assert "as specified then" not in capsys.readouterr().err
+    # One that predates stored specs is evaluated on today's, and says so.
+    del cfg["train"]["specs"]
     (run / "config.json").write_text(json.dumps(cfg))
     assert main(["evaluate", str(run), "--policy", "none", "--episodes", "1", "-q"]) == 0
     assert f"trained on {scenario} as specified then" in capsys.readouterr().err

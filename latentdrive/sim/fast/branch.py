@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from latentdrive.actions import IDLE, N_ACTIONS
+from latentdrive.actions import N_ACTIONS, idle_when_done
 from latentdrive.sim.fast.kstep import step_envs
 from latentdrive.sim.fast.network import LaneTable
 from latentdrive.sim.fast.scratch import Scratch
@@ -71,7 +71,7 @@ class Branches:
         for p in self._parts:
             a = acts[p.out, : self.n_av]
             done = p.state.flag[CRASHED, :, : self.n_av] | p.state.flag[ARRIVED, :, : self.n_av]
-            a = np.where(done, IDLE, a)
+            a = idle_when_done(a, done)
             step_envs(p.table, p.state, np.arange(p.out.size, dtype=np.int64), a, p.scratch)
 
     def agents(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
