@@ -454,7 +454,10 @@ def _train(
                     extra_tensors = {f"cuda_rng_{i}": st for i, st in enumerate(states)}
                 validated = val_batches_fn is not None and validate_now
                 score = validation_score(val) if validated else -math.inf
-                is_best = (validated and score > best) or val_batches_fn is None
+                # The first validated epoch is kept whatever it scores (a map with no bright
+                # cell scores −∞), so that best.safetensors exists once anything validated.
+                is_best = val_batches_fn is None or (
+                    validated and (score > best or not (run / BEST_NAME).exists()))
                 best = max(best, score)
                 if is_best:
                     # Written before the checkpoint: a run cut off between the two resumes
