@@ -104,10 +104,26 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
                       for i, s in enumerate(seeds)]
         episode_seeds = [self._next_seed(i) for i in range(self.num_envs)]
         scenes = self._batch.reset(episode_seeds)
-        results = [ep.start(sc, es) for ep, sc, es in zip(self._episodes, scenes, episode_seeds, strict=True)]
+        for ep, sc, es in zip(self._episodes, scenes, episode_seeds, strict=True):
+            ep.begin(sc, es)
+        results = self._observe(list(range(self.num_envs)))
         info = self._merge([info for _, info in results])
         info["agents"] = AgentStep(*(np.stack(f) for f in zip(*(i["agents"] for _, i in results), strict=True)))
         return np.stack([o for o, _ in results]), info
+
+    def _observe(self, env_ids: list[int]) -> list[tuple[np.ndarray, dict[str, Any]]]:
+        """Render the frames the episodes ``env_ids`` need (one batch call, noisy and, if
+        asked, clean) and hand them over; each episode's ``(obs, info)``."""
+        eps = [self._episodes[i] for i in env_ids]
+        observing = np.zeros((len(eps), self.n_av), dtype=bool)
+        for k, ep in enumerate(eps):
+            observing[k] = ep.observing
+        # Each environment's draws come from its own stream, as in a single env.
+        noise = [ep.draw_noise(ep.scene.n_vehicles) for ep in eps]  # type: ignore[union-attr]
+        cfg = self.configs[0].observation
+        frames = self._batch.render(env_ids, cfg, noise, observing)
+        clean = self._batch.render(env_ids, cfg, None, observing) if self.configs[0].clean_observation else None
+        return [ep.observe(frames[k], None if clean is None else clean[k]) for k, ep in enumerate(eps)]
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         acts = np.asarray(actions)
@@ -117,7 +133,8 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         t0 = time.perf_counter()
         scenes = self._batch.step(checked)
         t1 = time.perf_counter()
-        obs, rewards, terms, truncs, infos = zip(*(ep.advance(sc) for ep, sc in zip(self._episodes, scenes, strict=True)), strict=True)
+        rewards, terms, truncs = zip(*(ep.account(sc) for ep, sc in zip(self._episodes, scenes, strict=True)), strict=True)
+        obs, infos = zip(*self._observe(list(range(self.num_envs))), strict=True)
         self.timings["simulate"] += t1 - t0
         self.timings["observe"] += time.perf_counter() - t1
         obs_list, info_list = list(obs), list(infos)
@@ -131,7 +148,9 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
                 final_obs[i] = obs_list[i]
                 # gymnasium's own dict-of-arrays merge, with its ``_key`` masks.
                 final_info = self._add_info(final_info, info_list[i], i)
-                obs_list[i], info_list[i] = self._episodes[i].start(scene, s)
+                self._episodes[i].begin(scene, s)
+            for i, (o, inf) in zip(done, self._observe(done), strict=True):
+                obs_list[i], info_list[i] = o, inf
         info = self._merge(info_list)
         info["agents"] = agents
         mask = np.zeros(self.num_envs, dtype=bool)
