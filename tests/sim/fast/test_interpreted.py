@@ -41,7 +41,7 @@ from latentdrive.config import ObservationConfig
 from latentdrive.observe import draw_noise
 from latentdrive.scenarios import get_spec
 from latentdrive.sim.fast import FastBatch
-cfg = ObservationConfig(height=8, width=16, resolution=3.0, behind=12.0)
+cfg = ObservationConfig(height=8, width=16, resolution=1.5, behind=12.0)
 batch = FastBatch([get_spec("merge")])
 batch.reset([5])
 noise = [draw_noise(np.random.default_rng(1), 2, batch.scene(0).n_vehicles, cfg.noise)]
@@ -53,7 +53,7 @@ def test_renderer_gives_the_same_frames_interpreted():
     env = {**os.environ, "NUMBA_DISABLE_JIT": "1"}
     out = subprocess.run([sys.executable, "-c", _RENDER], env=env, capture_output=True, text=True, check=True)
     interpreted = np.array(json.loads(out.stdout), dtype=np.float32)
-    cfg = ObservationConfig(height=8, width=16, resolution=3.0, behind=12.0)
+    cfg = ObservationConfig(height=8, width=16, resolution=1.5, behind=12.0)
     batch = FastBatch([get_spec("merge")])
     batch.reset([5])
     noise = [draw_noise(np.random.default_rng(1), 2, batch.scene(0).n_vehicles, cfg.noise)]
