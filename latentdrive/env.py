@@ -100,11 +100,14 @@ class Episode:
     the episode and ``info``. Backend-neutral: it only reads Scenes.
     """
 
-    def __init__(self, config: EnvConfig) -> None:
+    def __init__(self, config: EnvConfig, storage: np.ndarray | None = None,
+                 clean_storage: np.ndarray | None = None) -> None:
+        """``storage`` (and ``clean_storage``): where to keep the stacks, ``(n_av, 4, T, H,
+        W)`` float32 (a vector env's rows); by default arrays of their own."""
         self.config = config
         self.spec = config.scenario
-        self._stack = FrameStack(config.observation.frames)
-        self._clean_stack = FrameStack(config.observation.frames)
+        self._stack = FrameStack(config.observation.frames, storage)
+        self._clean_stack = FrameStack(config.observation.frames, clean_storage)
         self._noise_rng = np.random.default_rng(0)
         self.scene: Scene | None = None
         self.steps = 0
@@ -138,11 +141,13 @@ class Episode:
         stream does not depend on who is still driving) and ``n_vehicles`` vehicles."""
         return draw_noise(self._noise_rng, self.spec.n_av, n_vehicles, self.config.observation.noise)
 
-    def observe(self, frame: np.ndarray, clean_frame: np.ndarray | None) -> tuple[np.ndarray, dict[str, Any]]:
+    def observe(self, frame: np.ndarray, clean_frame: np.ndarray | None,
+                copy: bool = True) -> tuple[np.ndarray, dict[str, Any]]:
         """Stack the frames ``(n_av, 4, H, W)`` of the AVs in :attr:`observing` (the other
         rows are not read; those AVs keep their last observation) and return the
         observation and ``info`` of the current step; ``clean_frame`` is needed exactly
-        when the config asks for clean observations."""
+        when the config asks for clean observations. ``copy=False`` returns the stack
+        itself, which changes on the next call."""
         if self.scene is None:
             raise RuntimeError("call reset() first")
         if (clean_frame is None) == self.config.clean_observation:
@@ -156,7 +161,7 @@ class Episode:
             else:
                 stack.push(f, rows=self.observing)
         self._fresh = False
-        return self._stack.stack, self._info(self.scene, self._agents)
+        return self._stack.stack if copy else self._stack.view, self._info(self.scene, self._agents)
 
     def check_actions(self, action: np.ndarray) -> np.ndarray:
         """``action`` as ``(n_av,)`` int64 with inactive AVs set to Idle; ValueError or EpisodeEnded."""

@@ -76,7 +76,12 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self._batch = make_batch([c.scenario for c in configs], backend)
-        self._episodes = [Episode(c) for c in configs]
+        # Every environment's stacks live in one array, copied once per step.
+        shape = (self.num_envs, self.n_av, *configs[0].observation.shape)
+        self._obs = np.zeros(shape, dtype=np.float32)
+        self._clean = np.zeros(shape, dtype=np.float32) if configs[0].clean_observation else None
+        self._episodes = [Episode(c, self._obs[i], None if self._clean is None else self._clean[i])
+                          for i, c in enumerate(configs)]
         self._rngs: list[np.random.Generator] | None = None
         #: Seconds spent in the simulator and in building observations (rewards included) by
         #: step() since construction; resets excluded. For benchmarks.
@@ -109,7 +114,7 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         results = self._observe(list(range(self.num_envs)))
         info = self._merge([info for _, info in results])
         info["agents"] = AgentStep(*(np.stack(f) for f in zip(*(i["agents"] for _, i in results), strict=True)))
-        return np.stack([o for o, _ in results]), info
+        return self._obs.copy(), info
 
     def _observe(self, env_ids: list[int]) -> list[tuple[np.ndarray, dict[str, Any]]]:
         """Render the frames the episodes ``env_ids`` need (one batch call, noisy and, if
@@ -123,7 +128,8 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         cfg = self.configs[0].observation
         frames = self._batch.render(env_ids, cfg, noise, observing)
         clean = self._batch.render(env_ids, cfg, None, observing) if self.configs[0].clean_observation else None
-        return [ep.observe(frames[k], None if clean is None else clean[k]) for k, ep in enumerate(eps)]
+        # The stacks are views of self._obs: read them before the next call.
+        return [ep.observe(frames[k], None if clean is None else clean[k], copy=False) for k, ep in enumerate(eps)]
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         acts = np.asarray(actions)
@@ -134,10 +140,10 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         scenes = self._batch.step(checked)
         t1 = time.perf_counter()
         rewards, terms, truncs = zip(*(ep.account(sc) for ep, sc in zip(self._episodes, scenes, strict=True)), strict=True)
-        obs, infos = zip(*self._observe(list(range(self.num_envs))), strict=True)
+        _, infos = zip(*self._observe(list(range(self.num_envs))), strict=True)
         self.timings["simulate"] += t1 - t0
         self.timings["observe"] += time.perf_counter() - t1
-        obs_list, info_list = list(obs), list(infos)
+        info_list = list(infos)
         agents = AgentStep(*(np.stack(f) for f in zip(*(inf["agents"] for inf in infos), strict=True)))
         done = [i for i in range(self.num_envs) if terms[i] or truncs[i]]
         final_obs = np.full(self.num_envs, None, dtype=object)
@@ -145,18 +151,18 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         if done:
             seeds = [self._next_seed(i) for i in done]
             for i, scene, s in zip(done, self._batch.reset(seeds, env_ids=done), seeds, strict=True):
-                final_obs[i] = obs_list[i]
+                final_obs[i] = self._obs[i].copy()  # before the next episode's stack replaces it
                 # gymnasium's own dict-of-arrays merge, with its ``_key`` masks.
                 final_info = self._add_info(final_info, info_list[i], i)
                 self._episodes[i].begin(scene, s)
-            for i, (o, inf) in zip(done, self._observe(done), strict=True):
-                obs_list[i], info_list[i] = o, inf
+            for i, (_, inf) in zip(done, self._observe(done), strict=True):
+                info_list[i] = inf
         info = self._merge(info_list)
         info["agents"] = agents
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[done] = True
         info.update(final_obs=final_obs, _final_obs=mask, final_info=final_info, _final_info=mask.copy())
-        return (np.stack(obs_list), np.asarray(rewards, dtype=np.float64), np.asarray(terms, dtype=bool),
+        return (self._obs.copy(), np.asarray(rewards, dtype=np.float64), np.asarray(terms, dtype=bool),
                 np.asarray(truncs, dtype=bool), info)
 
     def _next_seed(self, i: int) -> int:

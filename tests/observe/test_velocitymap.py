@@ -374,3 +374,15 @@ def test_noise_draws_given_or_drawn_render_alike():
         render_frame(scene, scene.agents, CFG, np.random.default_rng(5), noise=draws)
     with pytest.raises(ValueError, match="noise draws are"):
         render_frame(scene, scene.agents[:1], CFG, noise=draws)
+
+
+def test_frame_stack_keeps_its_frames_in_the_storage_given():
+    storage = np.zeros((2, 4, 3, 3, 5), dtype=np.float32)
+    fs = FrameStack(3, storage)
+    fs.reset(_frame(1.0))
+    fs.push(_frame(2.0))
+    assert fs.view is storage and storage[:, :, -1].min() == 2.0 and storage[:, :, 0].max() == 1.0
+    with pytest.raises(ValueError, match="does not fit"):
+        fs.reset(np.zeros((1, 4, 3, 5), dtype=np.float32))
+    with pytest.raises(ValueError, match="storage must be"):
+        FrameStack(2, storage)

@@ -96,9 +96,12 @@ def test_same_seed_same_observations_in_the_vector_env():
     def run(seed):
         vec = latentdrive.make_vec(["merge", "intersection"], 4, backend="fast", **SMALL)
         out = [vec.reset(seed=seed)[0]]
+        kept = out[0].copy()
         script = np.random.default_rng(0)
         for _ in range(6):
             out.append(vec.step(script.integers(0, 5, (4, vec.n_av)))[0])
+        # Observations handed out are the caller's: later steps leave them alone.
+        np.testing.assert_array_equal(out[0], kept)
         return np.stack(out)
 
     a, b, c = run(3), run(3), run(4)
