@@ -386,3 +386,13 @@ def test_frame_stack_keeps_its_frames_in_the_storage_given():
         fs.reset(np.zeros((1, 4, 3, 5), dtype=np.float32))
     with pytest.raises(ValueError, match="storage must be"):
         FrameStack(2, storage)
+
+
+def test_noise_draws_follow_the_documented_stream_order():
+    cfg = CFG.noise
+    draws = draw_noise(np.random.default_rng(9), 3, 4, cfg)
+    rng = np.random.default_rng(9)
+    np.testing.assert_array_equal(draws.position, rng.standard_normal((3, 4, 2)) * cfg.position_std)
+    np.testing.assert_array_equal(draws.heading, rng.standard_normal((3, 4)) * cfg.heading_std)
+    np.testing.assert_array_equal(draws.speed, rng.standard_normal((3, 4)) * cfg.speed_std)
+    np.testing.assert_array_equal(draws.missed, rng.random((3, 4)) < cfg.miss_prob)
