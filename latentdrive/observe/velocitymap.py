@@ -336,14 +336,17 @@ class FrameStack:
         expected = (buf.shape[0], buf.shape[1], buf.shape[3], buf.shape[4])
         if np.shape(frame) != expected:
             raise ValueError(f"frame shape {np.shape(frame)} does not match {expected}")
+        # One slot at a time, oldest first: each copy reads a slot not yet overwritten,
+        # and slices that do not overlap spare numpy the temporary copy of the stack it
+        # makes for an overlapping one.
         if rows is None or np.all(rows):
-            # numpy buffers overlapping copies, so the shift reads the old frames.
-            buf[:, :, :-1] = buf[:, :, 1:]
+            for t in range(self.frames - 1):
+                buf[:, :, t] = buf[:, :, t + 1]
             buf[:, :, -1] = frame
             return
         idx = np.flatnonzero(rows)
-        # Fancy indexing on the right copies, so the overlapping shift is safe.
-        buf[idx, :, :-1] = buf[idx, :, 1:]
+        for t in range(self.frames - 1):
+            buf[idx, :, t] = buf[idx, :, t + 1]
         buf[idx, :, -1] = np.asarray(frame)[idx]
 
     @property
