@@ -369,7 +369,7 @@ def test_noise_draws_given_or_drawn_render_alike():
     draws = draw_noise(np.random.default_rng(5), scene.n_agents, scene.n_vehicles, CFG.noise)
     np.testing.assert_array_equal(render_frame(scene, scene.agents, CFG, noise=draws), drawn)
     # One observer's rows of the same draws give that observer's frame.
-    np.testing.assert_array_equal(render_frame(scene, scene.agents[1:], CFG, noise=draws.rows([1]))[0], drawn[1])
+    np.testing.assert_array_equal(render_frame(scene, scene.agents[1:], CFG, noise=draws.rows(np.array([1])))[0], drawn[1])
     with pytest.raises(ValueError, match="not both"):
         render_frame(scene, scene.agents, CFG, np.random.default_rng(5), noise=draws)
     with pytest.raises(ValueError, match="noise draws are"):
