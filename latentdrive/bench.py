@@ -1,7 +1,13 @@
 """``latentdrive bench``: simulation and observation throughput, measured in one run.
 
-For each scenario it steps the backend with random meta-actions (resetting when an
-episode ends) and, at every step, times three things on the same instant:
+``bench --backend fast`` (:func:`bench_fast`) compares the fast backend with highway-env
+per scenario, each figure measured in the same run as its reference: the simulation
+alone, and whole environments with a VelocityMap for every acting AV, resets included
+(:func:`measure_env_throughput`).
+
+``bench`` on the highway backend (:func:`run_bench`) steps it with random meta-actions
+(resetting when an episode ends) and, at every step, times three things on the same
+instant:
 
 - the simulation step alone (env steps/s),
 - our VelocityMap frame for every AV, noise included (ms per agent-frame),
@@ -15,17 +21,20 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 
 import numpy as np
 
 from latentdrive.config import ObservationConfig
+from latentdrive.env import make_env
 from latentdrive.observe import render_frame
 from latentdrive.reward import episode_end
 from latentdrive.scenarios import get_spec
 from latentdrive.sim.highway import HighwayBackend
+from latentdrive.sim.validate import ThroughputRow, measure_throughput
+from latentdrive.vec import make_vec
 
-__all__ = ["BenchRow", "format_table", "run_bench"]
+__all__ = ["BenchRow", "bench_fast", "format_table", "measure_env_throughput", "run_bench"]
 
 
 @dataclass(frozen=True)
@@ -123,3 +132,66 @@ def format_table(rows: list[BenchRow], cfg: ObservationConfig) -> str:
             f"{r.obs_ms_per_agent_frame:>20.3f}{r.grid_ms_per_agent_frame:>21.2f}{r.grid_over_obs:>9.0f}x"
         )
     return "\n".join(lines)
+
+
+def measure_env_throughput(scenario: str, batch_size: int = 64, fast_steps: int = 50, highway_steps: int = 40,
+                           obs_cfg: ObservationConfig | None = None, seed: int = 0) -> ThroughputRow:
+    """Env steps/s with VelocityMaps: ``make_vec(scenario, batch_size)`` on the fast
+    backend against ``make_env(scenario)`` on highway-env, measured one after the other.
+
+    Both are stepped through the environments with random meta-actions, so every step
+    renders a stacked observation for every AV that acted, and an ended episode is reset
+    (the vector env auto-resets, the single env is reset by the loop) with its first
+    observation rendered: resets are inside the timed loop. The first reset (and, for the
+    fast batch, one step that compiles or loads the kernels) is not timed.
+    """
+    obs = (obs_cfg or ObservationConfig()).model_dump()
+    rng = np.random.default_rng(seed)
+    env = make_env(scenario, backend="highway", observation=obs)
+    n_av = env.config.scenario.n_av
+    env.reset(seed=seed)
+    t0 = time.perf_counter()
+    for _ in range(highway_steps):
+        _, _, terminated, truncated, _ = env.step(rng.integers(0, 5, n_av))
+        if terminated or truncated:
+            env.reset()
+    highway = highway_steps / (time.perf_counter() - t0)
+    env.close()
+
+    vec = make_vec(scenario, batch_size, backend="fast", observation=obs)
+    vec.reset(seed=seed)
+    vec.step(rng.integers(0, 5, (batch_size, n_av)))
+    t0 = time.perf_counter()
+    for _ in range(fast_steps):
+        vec.step(rng.integers(0, 5, (batch_size, n_av)))
+    fast = fast_steps * batch_size / (time.perf_counter() - t0)
+    vec.close()
+    spec = env.config.scenario
+    return ThroughputRow(spec.name, spec.n_av + spec.n_hv, n_av, batch_size, True, highway, fast)
+
+
+def bench_fast(scenarios: Iterable[str], batch_size: int = 64, steps: int = 50, seed: int = 0,
+               obs_cfg: ObservationConfig | None = None, repeat: int = 1,
+               progress: Callable[[str], None] | None = None) -> list[ThroughputRow]:
+    """Two rows per scenario: the simulation alone (:func:`~latentdrive.sim.validate.measure_throughput`)
+    and the environments with VelocityMaps (:func:`measure_env_throughput`), each with
+    ``steps`` policy steps of both backends.
+
+    With ``repeat`` > 1 every measurement runs that many times and its row is the run with
+    the median speed-up (the lower middle one for an even count), with the speed-ups'
+    range: a shared machine's speed varies from run to run, and a ratio of two figures
+    taken seconds apart varies less than either figure.
+    """
+    if repeat < 1:
+        raise ValueError(f"repeat must be at least 1, got {repeat}")
+    rows = []
+    for name in scenarios:
+        for maps in (False, True):
+            runs = [measure_env_throughput(name, batch_size, steps, steps, obs_cfg, seed) if maps
+                    else measure_throughput(name, batch_size, steps, steps, seed) for _ in range(repeat)]
+            ratios = sorted(r.speedup for r in runs)
+            median = next(r for r in runs if r.speedup == ratios[(len(ratios) - 1) // 2])
+            rows.append(replace(median, runs=repeat, speedup_min=ratios[0], speedup_max=ratios[-1]))
+            if progress:
+                progress(f"  {name}{' with maps' if maps else ''}: {median.speedup:.0f}x (median of {repeat})")
+    return rows

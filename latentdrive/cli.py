@@ -150,16 +150,14 @@ def _cmd_bench(args: argparse.Namespace) -> int:
     cfg = validate(ObservationConfig, parse_override_args(args.overrides), prefix="observation.")
     _say(f"benchmarking {len(names)} scenario(s) on the {args.backend} backend ...")
     if args.backend == "fast":
-        from latentdrive.sim.validate import format_throughput, measure_throughput
+        from latentdrive.bench import bench_fast
+        from latentdrive.sim.validate import format_throughput
 
-        rows = []
-        for name in names:
-            for maps in (False, True):
-                rows.append(measure_throughput(name, batch_size=args.batch_size, fast_steps=args.steps,
-                                               highway_steps=args.steps, velocity_maps=maps, obs_cfg=cfg, seed=args.seed))
-            _say(f"  {name}: done")
-        print(f"fast batch of {args.batch_size} vs highway-env, one core, same run; "
-              f"'maps': a VelocityMap per AV per step ({cfg.height}x{cfg.width}), agent observations/s = steps/s × AVs")
+        rows = bench_fast(names, batch_size=args.batch_size, steps=args.steps, seed=args.seed, obs_cfg=cfg,
+                          repeat=args.repeat, progress=_say)
+        print(f"fast batch of {args.batch_size} vs highway-env, one core, each pair in one run; "
+              f"maps no: the simulation alone; maps yes: the environments, a {cfg.height}x{cfg.width} "
+              "VelocityMap stack for every acting AV every step, resets included")
         print(format_throughput(rows))
         dicts = [r.as_dict() for r in rows]
     else:
@@ -308,8 +306,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--modes", default="", help="with --train: comma-separated modes (default raw,latent,end-to-end)")
     s.add_argument("--bnn", default="", help="with --train: a BNN run for mode latent (default: an untrained encoder, same cost)")
     s.add_argument("--repeat", type=positive_int, default=1,
-                   help="with --train: run each mode this many times and report the median run and the range "
-                   "(a shared machine's speed varies from run to run)")
+                   help="with --train or --backend fast: run each measurement this many times and report the "
+                   "median run and the range (a shared machine's speed varies from run to run)")
     _add_set(s, "observation override, repeatable (--set height=64 --set resolution=1.0); with --train, train-policy overrides")
     s.set_defaults(func=_cmd_bench)
 

@@ -9,7 +9,8 @@ Per-agent episodes (``info["agents"]``, an :class:`AgentStep`):
 
 - an AV *terminates* on the step it crashes or completes its mission. Its transition of
   that step has no bootstrap; it earns nothing afterwards and stores no more transitions,
-  and the env drives it with Idle whatever action it is given;
+  its observation stays the last one it saw (no more frames are rendered for it), and the
+  env drives it with Idle whatever action it is given;
 - the *episode* ends when any AV has crashed or every AV has completed its mission
   (terminated), or when time runs out (truncated). AVs still driving then are *cut off*
   (``AgentStep.truncated``): their last transition bootstraps from the next observation,
@@ -28,7 +29,7 @@ from pydantic import Field
 
 from latentdrive.actions import N_ACTIONS, idle_when_done
 from latentdrive.config import Config, ConfigError, ObservationConfig, merge_overrides, validate
-from latentdrive.observe import FrameStack, render_frame
+from latentdrive.observe import FrameStack, SensorNoise, draw_noise, render_agents
 from latentdrive.reward import agent_rewards, episode_end
 from latentdrive.scenarios import RewardConfig, ScenarioSpec, get_spec
 from latentdrive.scene import Scene
@@ -99,29 +100,68 @@ class Episode:
     the episode and ``info``. Backend-neutral: it only reads Scenes.
     """
 
-    def __init__(self, config: EnvConfig) -> None:
+    def __init__(self, config: EnvConfig, storage: np.ndarray | None = None,
+                 clean_storage: np.ndarray | None = None) -> None:
+        """``storage`` (and ``clean_storage``): where to keep the stacks, ``(n_av, 4, T, H,
+        W)`` float32 (a vector env's rows); by default arrays of their own."""
         self.config = config
         self.spec = config.scenario
-        self._stack = FrameStack(config.observation.frames)
-        self._clean_stack = FrameStack(config.observation.frames)
+        self._stack = FrameStack(config.observation.frames, storage)
+        self._clean_stack = FrameStack(config.observation.frames, clean_storage)
         self._noise_rng = np.random.default_rng(0)
         self.scene: Scene | None = None
         self.steps = 0
         self.seed = 0
         self.active: NDArray[np.bool_] = np.zeros(config.scenario.n_av, dtype=bool)
+        #: ``(n_av,)`` the AVs whose frame the current step needs: all after a reset, then
+        #: those that acted on the step.
+        self.observing: NDArray[np.bool_] = np.zeros(config.scenario.n_av, dtype=bool)
         self.ended = False
+        self._agents = AgentStep.start(config.scenario.n_av)
+        self._fresh = True
 
     def start(self, scene: Scene, episode_seed: int) -> tuple[np.ndarray, dict[str, Any]]:
         """Begin an episode at ``scene``, the backend's reset for ``episode_seed``."""
+        self.begin(scene, episode_seed)
+        return self.observe(*self._render(scene))
+
+    def begin(self, scene: Scene, episode_seed: int) -> None:
+        """:meth:`start` up to its observation (give it to :meth:`observe`)."""
         self.seed, self.scene, self.steps = episode_seed, scene, 0
         self.active = np.ones(self.spec.n_av, dtype=bool)
         self.ended = False
         # Sensor noise has its own stream, derived from the episode seed.
         self._noise_rng = np.random.default_rng([episode_seed, 2])
-        self._stack.reset(self._frame(scene, noisy=True))
-        if self.config.clean_observation:
-            self._clean_stack.reset(self._frame(scene, noisy=False))
-        return self._stack.stack, self._info(scene, AgentStep.start(self.spec.n_av))
+        self._agents = AgentStep.start(self.spec.n_av)
+        self.observing = np.ones(self.spec.n_av, dtype=bool)
+        self._fresh = True
+
+    def draw_noise(self, n_vehicles: int) -> SensorNoise:
+        """The next frame's sensor noise, for every AV (whether observing or not, so the
+        stream does not depend on who is still driving) and ``n_vehicles`` vehicles."""
+        return draw_noise(self._noise_rng, self.spec.n_av, n_vehicles, self.config.observation.noise)
+
+    def observe(self, frame: np.ndarray, clean_frame: np.ndarray | None,
+                copy: bool = True) -> tuple[np.ndarray, dict[str, Any]]:
+        """Stack the frames ``(n_av, 4, H, W)`` of the AVs in :attr:`observing` (the other
+        rows are not read; those AVs keep their last observation) and return the
+        observation and ``info`` of the current step; ``clean_frame`` is needed exactly
+        when the config asks for clean observations. ``copy=False`` returns the stack
+        itself, which changes on the next call."""
+        if self.scene is None:
+            raise RuntimeError("call reset() first")
+        if (clean_frame is None) == self.config.clean_observation:
+            raise ValueError("a clean frame is needed exactly when clean_observation is on")
+        stacks = [(self._stack, frame)]
+        if clean_frame is not None:
+            stacks.append((self._clean_stack, clean_frame))
+        for stack, f in stacks:
+            if self._fresh:
+                stack.reset(f)
+            else:
+                stack.push(f, rows=self.observing)
+        self._fresh = False
+        return self._stack.stack if copy else self._stack.view, self._info(self.scene, self._agents)
 
     def check_actions(self, action: np.ndarray) -> np.ndarray:
         """``action`` as ``(n_av,)`` int64 with inactive AVs set to Idle; ValueError or EpisodeEnded."""
@@ -136,6 +176,17 @@ class Episode:
 
     def advance(self, scene: Scene) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
         """Account for one policy step that led to ``scene``."""
+        reward, terminated, truncated = self.account(scene)
+        obs, info = self.observe(*self._render(scene))
+        return obs, reward, terminated, truncated, info
+
+    def account(self, scene: Scene) -> tuple[float, bool, bool]:
+        """:meth:`advance` up to its observation (give it to :meth:`observe`): the mean
+        reward and whether the episode terminated or was truncated.
+
+        The AVs that acted on this step (:attr:`observing` afterwards) get a frame: their
+        transitions lead to it. AVs done on an earlier step get none.
+        """
         before = self.scene
         if before is None:
             raise RuntimeError("call reset() first")
@@ -155,14 +206,16 @@ class Episode:
         own_end: NDArray[np.bool_] = acting & (scene.crashed[ag] | scene.arrived[ag])  # type: ignore[index]
         cut_off = acting & ~own_end & self.ended
         self.active = acting & ~own_end & (not self.ended)
-        agents = AgentStep(rewards, acting.copy(), own_end, cut_off, self.active.copy())
-        self._stack.push(self._frame(scene, noisy=True))
-        if self.config.clean_observation:
-            self._clean_stack.push(self._frame(scene, noisy=False))
-        return self._stack.stack, float(rewards.mean()), terminated, truncated, self._info(scene, agents)
+        self._agents = AgentStep(rewards, acting.copy(), own_end, cut_off, self.active.copy())
+        self.observing = acting.copy()
+        return float(rewards.mean()), terminated, truncated
 
-    def _frame(self, scene: Scene, noisy: bool) -> np.ndarray:
-        return render_frame(scene, scene.agents, self.config.observation, rng=self._noise_rng if noisy else None)
+    def _render(self, scene: Scene) -> tuple[np.ndarray, np.ndarray | None]:
+        """The reference renderer's frames of :attr:`observing` (noisy, and clean if asked)."""
+        cfg = self.config.observation
+        frame = render_agents(scene, cfg, self.draw_noise(scene.n_vehicles), self.observing)
+        clean = render_agents(scene, cfg, None, self.observing) if self.config.clean_observation else None
+        return frame, clean
 
     def _info(self, scene: Scene, agents: AgentStep) -> dict[str, Any]:
         info: dict[str, Any] = {

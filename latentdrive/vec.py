@@ -76,7 +76,12 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         self.observation_space = batch_space(self.single_observation_space, self.num_envs)
         self.action_space = batch_space(self.single_action_space, self.num_envs)
         self._batch = make_batch([c.scenario for c in configs], backend)
-        self._episodes = [Episode(c) for c in configs]
+        # Every environment's stacks live in one array, copied once per step.
+        shape = (self.num_envs, self.n_av, *configs[0].observation.shape)
+        self._obs = np.zeros(shape, dtype=np.float32)
+        self._clean = np.zeros(shape, dtype=np.float32) if configs[0].clean_observation else None
+        self._episodes = [Episode(c, self._obs[i], None if self._clean is None else self._clean[i])
+                          for i, c in enumerate(configs)]
         self._rngs: list[np.random.Generator] | None = None
         #: Seconds spent in the simulator and in building observations (rewards included) by
         #: step() since construction; resets excluded. For benchmarks.
@@ -104,10 +109,27 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
                       for i, s in enumerate(seeds)]
         episode_seeds = [self._next_seed(i) for i in range(self.num_envs)]
         scenes = self._batch.reset(episode_seeds)
-        results = [ep.start(sc, es) for ep, sc, es in zip(self._episodes, scenes, episode_seeds, strict=True)]
+        for ep, sc, es in zip(self._episodes, scenes, episode_seeds, strict=True):
+            ep.begin(sc, es)
+        results = self._observe(list(range(self.num_envs)))
         info = self._merge([info for _, info in results])
         info["agents"] = AgentStep(*(np.stack(f) for f in zip(*(i["agents"] for _, i in results), strict=True)))
-        return np.stack([o for o, _ in results]), info
+        return self._obs.copy(), info
+
+    def _observe(self, env_ids: list[int]) -> list[tuple[np.ndarray, dict[str, Any]]]:
+        """Render the frames the episodes ``env_ids`` need (one batch call, noisy and, if
+        asked, clean) and hand them over; each episode's ``(obs, info)``."""
+        eps = [self._episodes[i] for i in env_ids]
+        observing = np.zeros((len(eps), self.n_av), dtype=bool)
+        for k, ep in enumerate(eps):
+            observing[k] = ep.observing
+        # Each environment's draws come from its own stream, as in a single env.
+        noise = [ep.draw_noise(ep.scene.n_vehicles) for ep in eps]  # type: ignore[union-attr]
+        cfg = self.configs[0].observation
+        frames = self._batch.render(env_ids, cfg, noise, observing)
+        clean = self._batch.render(env_ids, cfg, None, observing) if self.configs[0].clean_observation else None
+        # The stacks are views of self._obs: read them before the next call.
+        return [ep.observe(frames[k], None if clean is None else clean[k], copy=False) for k, ep in enumerate(eps)]
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, dict[str, Any]]:
         acts = np.asarray(actions)
@@ -117,10 +139,11 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         t0 = time.perf_counter()
         scenes = self._batch.step(checked)
         t1 = time.perf_counter()
-        obs, rewards, terms, truncs, infos = zip(*(ep.advance(sc) for ep, sc in zip(self._episodes, scenes, strict=True)), strict=True)
+        rewards, terms, truncs = zip(*(ep.account(sc) for ep, sc in zip(self._episodes, scenes, strict=True)), strict=True)
+        _, infos = zip(*self._observe(list(range(self.num_envs))), strict=True)
         self.timings["simulate"] += t1 - t0
         self.timings["observe"] += time.perf_counter() - t1
-        obs_list, info_list = list(obs), list(infos)
+        info_list = list(infos)
         agents = AgentStep(*(np.stack(f) for f in zip(*(inf["agents"] for inf in infos), strict=True)))
         done = [i for i in range(self.num_envs) if terms[i] or truncs[i]]
         final_obs = np.full(self.num_envs, None, dtype=object)
@@ -128,16 +151,18 @@ class DrivingVecEnv(gym.vector.VectorEnv[np.ndarray, np.ndarray, np.ndarray]):
         if done:
             seeds = [self._next_seed(i) for i in done]
             for i, scene, s in zip(done, self._batch.reset(seeds, env_ids=done), seeds, strict=True):
-                final_obs[i] = obs_list[i]
+                final_obs[i] = self._obs[i].copy()  # before the next episode's stack replaces it
                 # gymnasium's own dict-of-arrays merge, with its ``_key`` masks.
                 final_info = self._add_info(final_info, info_list[i], i)
-                obs_list[i], info_list[i] = self._episodes[i].start(scene, s)
+                self._episodes[i].begin(scene, s)
+            for i, (_, inf) in zip(done, self._observe(done), strict=True):
+                info_list[i] = inf
         info = self._merge(info_list)
         info["agents"] = agents
         mask = np.zeros(self.num_envs, dtype=bool)
         mask[done] = True
         info.update(final_obs=final_obs, _final_obs=mask, final_info=final_info, _final_info=mask.copy())
-        return (np.stack(obs_list), np.asarray(rewards, dtype=np.float64), np.asarray(terms, dtype=bool),
+        return (self._obs.copy(), np.asarray(rewards, dtype=np.float64), np.asarray(terms, dtype=bool),
                 np.asarray(truncs, dtype=bool), info)
 
     def _next_seed(self, i: int) -> int:

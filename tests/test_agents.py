@@ -1,5 +1,6 @@
 """Per-agent episode semantics, on hand-made Scenes: who terminates, who is cut off, who earns."""
 
+import dataclasses
 from typing import Any
 
 import numpy as np
@@ -51,6 +52,18 @@ def test_an_arrived_av_terminates_alone_and_then_earns_nothing():
     assert a.terminated.tolist() == [False, True] and not a.active.any() and not a.truncated.any()
     with pytest.raises(EpisodeEnded, match="reset"):
         ep.check_actions(np.array([1, 1]))
+
+
+def test_an_av_done_on_an_earlier_step_gets_no_new_frames():
+    ep = episode()
+    first, *_ = ep.advance(scene(arrived=(True, False)))
+    assert ep.observing.tolist() == [True, True]  # its last transition leads to this frame
+    before = scene(arrived=(True, False))
+    moved = dataclasses.replace(before, position=before.position + np.array([[6.0, 0.0], [3.0, 0.0]]))
+    later, *_ = ep.advance(moved)
+    assert ep.observing.tolist() == [False, True]
+    np.testing.assert_array_equal(later[0], first[0])
+    assert not np.array_equal(later[1], first[1])
 
 
 def test_a_crash_terminates_the_crasher_and_cuts_off_the_others():

@@ -7,8 +7,11 @@ from latentdrive.observe.velocitymap import (
     MV,
     RL,
     FrameStack,
+    SensorNoise,
+    draw_noise,
+    render_agents,
     render_frame,
     velocity_log_map,
 )
 
-__all__ = ["AV", "CHANNELS", "HV", "MV", "RL", "FrameStack", "render_frame", "velocity_log_map"]
+__all__ = ["AV", "CHANNELS", "HV", "MV", "RL", "FrameStack", "SensorNoise", "draw_noise", "render_agents", "render_frame", "velocity_log_map"]

@@ -34,12 +34,12 @@ frames are reproducible for a seed.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from typing import Final
+from typing import Final, NamedTuple
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from latentdrive.config import ObservationConfig
+from latentdrive.config import NoiseConfig, ObservationConfig
 from latentdrive.scene import Kind, Scene
 
 __all__ = [
@@ -49,6 +49,9 @@ __all__ = [
     "MV",
     "RL",
     "FrameStack",
+    "SensorNoise",
+    "draw_noise",
+    "render_agents",
     "render_frame",
     "velocity_log_map",
 ]
@@ -92,6 +95,48 @@ def velocity_log_map(v: ArrayLike, alpha: float, beta: float, v0: float) -> Floa
     return np.clip(z, 0.0, 1.0).astype(np.float32)
 
 
+class SensorNoise(NamedTuple):
+    """The sensor-noise draws of one frame: every (observer, vehicle) pair, ``(n_obs, N)``.
+
+    Attributes:
+        position: ``(n_obs, N, 2)`` offsets added to x, y, metres.
+        heading: ``(n_obs, N)`` offsets added to the heading, radians.
+        speed: ``(n_obs, N)`` offsets added to the Frenet speed, m/s.
+        missed: ``(n_obs, N)`` bool, True where the vehicle is not seen.
+
+    Entries of an observer's own slot are drawn but never applied (it knows its state).
+    """
+
+    position: NDArray[np.float64]
+    heading: NDArray[np.float64]
+    speed: NDArray[np.float64]
+    missed: NDArray[np.bool_]
+
+    def rows(self, which: NDArray[np.bool_] | NDArray[np.integer]) -> SensorNoise:
+        """The draws of the observers ``which`` (a mask or indices over ``n_obs``)."""
+        return SensorNoise(self.position[which], self.heading[which], self.speed[which], self.missed[which])
+
+
+def draw_noise(rng: np.random.Generator, n_obs: int, n_veh: int, noise: NoiseConfig) -> SensorNoise:
+    """Draw one frame's sensor noise for ``n_obs`` observers of ``n_veh`` vehicles.
+
+    The stream consumed depends only on ``(n_obs, n_veh)``, in this order: position
+    ``(n_obs, N, 2)`` standard normals, heading ``(n_obs, N)`` standard normals, Frenet
+    speed ``(n_obs, N)`` standard normals, miss ``(n_obs, N)`` uniforms; each scaled by
+    its ``noise`` field.
+    """
+    shape, k = (n_obs, n_veh), n_obs * n_veh
+    # One call draws the three normal arrays: the generator yields the same numbers in
+    # the same order as three calls would, for a quarter of the calls' overhead.
+    z = rng.standard_normal(4 * k)
+    return SensorNoise(
+        position=z[: 2 * k].reshape(*shape, 2) * noise.position_std,
+        heading=z[2 * k : 3 * k].reshape(shape) * noise.heading_std,
+        speed=z[3 * k :].reshape(shape) * noise.speed_std,
+        missed=rng.random(shape) < noise.miss_prob,
+    )
+
+
 def _local_axes(cfg: ObservationConfig) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Cell-centre coordinates ``(x_c (W,), y_c (H,))`` in the observer frame, metres."""
     res = cfg.resolution
@@ -105,6 +150,7 @@ def render_frame(
     observers: Sequence[int] | NDArray[np.integer],
     cfg: ObservationConfig,
     rng: np.random.Generator | None = None,
+    noise: SensorNoise | None = None,
 ) -> Float32Array:
     """Render one VelocityMap frame per observer.
 
@@ -113,12 +159,11 @@ def render_frame(
         observers: ``(n_obs,)`` indices into the scene's vehicles, normally
             ``scene.agents``.
         cfg: grid geometry, eq. 13 coefficients and noise levels (``cfg.noise``).
-        rng: when given, sensor noise ``cfg.noise`` is applied with it; ``None`` renders
-            the clean scene. Draws happen in this order, each for every
-            (observer, vehicle) pair including masked slots and the observer itself, so
-            the stream consumed depends only on ``(n_obs, N)``: position ``(n_obs, N, 2)``
-            standard normals, heading ``(n_obs, N)`` standard normals, Frenet speed
-            ``(n_obs, N)`` standard normals, miss ``(n_obs, N)`` uniforms.
+        rng: when given, sensor noise ``cfg.noise`` is drawn from it with
+            :func:`draw_noise` for every (observer, vehicle) pair, including masked
+            slots and the observer itself. ``None`` (and no ``noise``) renders the clean
+            scene.
+        noise: draws made beforehand, ``(n_obs, N)`` (instead of ``rng``).
 
     Returns:
         ``(n_obs, 4, H, W)`` float32 in [0, 1], channels in :data:`CHANNELS` order.
@@ -155,18 +200,18 @@ def render_frame(
     is_self = obs[:, None] == np.arange(n_veh)[None, :]
     visible = np.broadcast_to(scene.mask, (n_obs, n_veh)).copy()
     if rng is not None:
-        noise = cfg.noise
-        shape = (n_obs, n_veh)
-        d_pos = rng.standard_normal((*shape, 2)) * noise.position_std
-        d_head = rng.standard_normal(shape) * noise.heading_std
-        d_speed = rng.standard_normal(shape) * noise.speed_std
-        missed = rng.random(shape) < noise.miss_prob
+        if noise is not None:
+            raise ValueError("give rng or noise draws, not both")
+        noise = draw_noise(rng, n_obs, n_veh, cfg.noise)
+    if noise is not None:
+        if noise.heading.shape != (n_obs, n_veh):
+            raise ValueError(f"noise draws are {noise.heading.shape}, the frame needs {(n_obs, n_veh)}")
         # The observer knows its own state exactly.
         keep = ~is_self
-        pos = pos + d_pos * keep[..., None]
-        head = head + d_head * keep
-        fspeed = fspeed + d_speed * keep
-        visible &= ~(missed & keep)
+        pos = pos + noise.position * keep[..., None]
+        head = head + noise.heading * keep
+        fspeed = fspeed + noise.speed * keep
+        visible &= ~(noise.missed & keep)
 
     rel = pos - ego_pos[:, None, :]
     lx = cos_k[:, None] * rel[..., 0] + sin_k[:, None] * rel[..., 1]  # (n_obs, N)
@@ -218,6 +263,30 @@ def render_frame(
     return out
 
 
+def render_agents(
+    scene: Scene,
+    cfg: ObservationConfig,
+    noise: SensorNoise | None,
+    observing: NDArray[np.bool_],
+) -> Float32Array:
+    """Frames of the scene's agents where ``observing``, zeros for the others.
+
+    Args:
+        scene: the vehicles and road at one instant.
+        cfg: as for :func:`render_frame`.
+        noise: this frame's draws for every agent, ``(n_av, N)`` (the rows of agents
+            that are not observing are drawn but unused); None renders the clean scene.
+        observing: ``(n_av,)`` bool, the agents that get a frame.
+
+    Returns:
+        ``(n_av, 4, H, W)`` float32, agent order.
+    """
+    seen = np.asarray(observing, dtype=bool)
+    out = np.zeros((scene.n_agents, 4, cfg.height, cfg.width), dtype=np.float32)
+    out[seen] = render_frame(scene, scene.agents[seen], cfg, noise=None if noise is None else noise.rows(seen))
+    return out
+
+
 class FrameStack:
     """The last ``T`` frames of every observer, most recent last.
 
@@ -227,12 +296,18 @@ class FrameStack:
 
     Args:
         frames: T, the number of frames kept.
+        storage: where to keep the stack, ``(n_obs, C, T, H, W)`` float32 (a vector env
+            keeps every environment's stack in one array and copies it once per step);
+            by default an array of its own, allocated on :meth:`reset`.
     """
 
-    def __init__(self, frames: int) -> None:
+    def __init__(self, frames: int, storage: Float32Array | None = None) -> None:
         if frames < 1:
             raise ValueError(f"frames must be >= 1, got {frames}")
+        if storage is not None and (storage.ndim != 5 or storage.shape[2] != frames or storage.dtype != np.float32):
+            raise ValueError(f"storage must be float32 (n_obs, C, {frames}, H, W), got {storage.dtype} {storage.shape}")
         self.frames = int(frames)
+        self._storage = storage
         self._buf: Float32Array | None = None
 
     def reset(self, first_frame: NDArray[np.floating]) -> None:
@@ -241,19 +316,38 @@ class FrameStack:
         if frame.ndim != 4:
             raise ValueError(f"a frame must be (n_obs, C, H, W), got shape {frame.shape}")
         n, c, h, w = frame.shape
-        self._buf = np.empty((n, c, self.frames, h, w), dtype=np.float32)
+        if self._storage is None:
+            self._buf = np.empty((n, c, self.frames, h, w), dtype=np.float32)
+        elif self._storage.shape != (n, c, self.frames, h, w):
+            raise ValueError(f"frame shape {frame.shape} does not fit the storage {self._storage.shape}")
+        else:
+            self._buf = self._storage
         self._buf[...] = frame[:, :, None]
 
-    def push(self, frame: NDArray[np.floating]) -> None:
-        """Append ``frame`` ``(n_obs, 4, H, W)`` as the most recent, dropping the oldest."""
+    def push(self, frame: NDArray[np.floating], rows: NDArray[np.bool_] | None = None) -> None:
+        """Append ``frame`` ``(n_obs, 4, H, W)`` as the most recent, dropping the oldest.
+
+        With ``rows`` ``(n_obs,)`` bool, only those observers' stacks move on; the others
+        keep their last observation (their rows of ``frame`` are not read).
+        """
         if self._buf is None:
             raise RuntimeError("FrameStack.push called before reset")
         buf = self._buf
         expected = (buf.shape[0], buf.shape[1], buf.shape[3], buf.shape[4])
         if np.shape(frame) != expected:
             raise ValueError(f"frame shape {np.shape(frame)} does not match {expected}")
-        buf[:, :, :-1] = buf[:, :, 1:].copy()
-        buf[:, :, -1] = frame
+        # One slot at a time, oldest first: each copy reads a slot not yet overwritten,
+        # and slices that do not overlap spare numpy the temporary copy of the stack it
+        # makes for an overlapping one.
+        if rows is None or np.all(rows):
+            for t in range(self.frames - 1):
+                buf[:, :, t] = buf[:, :, t + 1]
+            buf[:, :, -1] = frame
+            return
+        idx = np.flatnonzero(rows)
+        for t in range(self.frames - 1):
+            buf[idx, :, t] = buf[idx, :, t + 1]
+        buf[idx, :, -1] = np.asarray(frame)[idx]
 
     @property
     def stack(self) -> Float32Array:
@@ -261,3 +355,10 @@ class FrameStack:
         if self._buf is None:
             raise RuntimeError("FrameStack.stack read before reset")
         return self._buf.copy()
+
+    @property
+    def view(self) -> Float32Array:
+        """:attr:`stack` without the copy: it changes with the next push or reset."""
+        if self._buf is None:
+            raise RuntimeError("FrameStack.view read before reset")
+        return self._buf

@@ -7,8 +7,10 @@ from collections.abc import Sequence
 from typing import Protocol
 
 import numpy as np
+from numpy.typing import NDArray
 
-from latentdrive.config import ConfigError
+from latentdrive.config import ConfigError, ObservationConfig
+from latentdrive.observe import SensorNoise, render_agents
 from latentdrive.scenarios.spec import ScenarioSpec
 from latentdrive.scene import Scene
 
@@ -44,6 +46,14 @@ class BatchBackend(Protocol):
         """One ``(n_av_i,)`` action array per environment; every environment's next Scene."""
         ...
 
+    def render(self, env_ids: Sequence[int], cfg: ObservationConfig, noise: Sequence[SensorNoise] | None,
+               observing: NDArray[np.bool_]) -> NDArray[np.float32]:
+        """VelocityMap frames ``(K, A, 4, H, W)`` of the current instant of ``env_ids``: AV
+        ``a`` of environment ``env_ids[k]`` where ``observing[k, a]`` (``(K, A)``, ``A``
+        the largest AV count), zeros elsewhere. ``noise`` holds each environment's draws
+        ``(n_av, n_veh)`` (:func:`~latentdrive.observe.draw_noise`); None renders clean."""
+        ...
+
 
 class SerialBatch:
     """A batch of single-environment backends stepped one after the other."""
@@ -51,13 +61,31 @@ class SerialBatch:
     def __init__(self, specs: Sequence[ScenarioSpec], backend: str) -> None:
         self.specs = list(specs)
         self.envs = [make_backend(spec, backend) for spec in self.specs]
+        self._scenes: list[Scene | None] = [None] * len(self.envs)
 
     def reset(self, seeds: Sequence[int], env_ids: Sequence[int] | None = None) -> list[Scene]:
         ids = range(len(self.envs)) if env_ids is None else env_ids
-        return [self.envs[i].reset(int(s)) for i, s in zip(ids, seeds, strict=True)]
+        scenes = [self.envs[i].reset(int(s)) for i, s in zip(ids, seeds, strict=True)]
+        for i, scene in zip(ids, scenes, strict=True):
+            self._scenes[i] = scene
+        return scenes
 
     def step(self, actions: Sequence[np.ndarray]) -> list[Scene]:
-        return [env.step(a) for env, a in zip(self.envs, actions, strict=True)]
+        self._scenes = [env.step(a) for env, a in zip(self.envs, actions, strict=True)]
+        return list(self._scenes)  # type: ignore[arg-type]
+
+    def render(self, env_ids: Sequence[int], cfg: ObservationConfig, noise: Sequence[SensorNoise] | None,
+               observing: NDArray[np.bool_]) -> NDArray[np.float32]:
+        """As :meth:`BatchBackend.render`, with the reference renderer, one scene at a time."""
+        width = max(s.n_av for s in self.specs)
+        out = np.zeros((len(env_ids), width, 4, cfg.height, cfg.width), dtype=np.float32)
+        for k, i in enumerate(env_ids):
+            scene = self._scenes[i]
+            if scene is None:
+                raise RuntimeError("reset() the environments before rendering them")
+            n_av = scene.n_agents
+            out[k, :n_av] = render_agents(scene, cfg, None if noise is None else noise[k], observing[k, :n_av])
+        return out
 
 
 def make_backend(spec: ScenarioSpec, backend: str = "highway") -> Backend:

@@ -10,9 +10,9 @@ crashed), episode length (decisions), mean speed (all vehicles, every decision) 
 lane-change rate (changes of an HV's lane within one road, per HV-minute). Episodes end
 as in the env: an AV crashed, every AV arrived, or the time limit.
 
-Throughput: env steps per second of each backend on one core, random actions with
-auto-reset, Scenes produced every step, optionally a VelocityMap frame for every AV;
-both measured in the same process, one after the other.
+Throughput: env steps per second of each backend's simulation on one core, random actions
+with auto-reset, Scenes produced every step; both measured in the same process, one after
+the other. (With VelocityMaps, through the envs: :mod:`latentdrive.bench`.)
 
 Known differences from highway-env (each makes single trajectories drift, none shows in
 the statistics at the tolerances below):
@@ -38,7 +38,6 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from latentdrive.config import ObservationConfig
 from latentdrive.reward import episode_end
 from latentdrive.scenarios import SCENARIOS, get_spec
 from latentdrive.scenarios.spec import ScenarioSpec
@@ -252,6 +251,11 @@ class ThroughputRow:
     velocity_maps: bool
     highway_steps_per_s: float
     fast_steps_per_s: float
+    #: Over repeated runs: how many, and the smallest and largest speed-up (the row's
+    #: rates are those of the run with the median speed-up).
+    runs: int = 1
+    speedup_min: float | None = None
+    speedup_max: float | None = None
 
     @property
     def speedup(self) -> float:
@@ -267,34 +271,22 @@ class ThroughputRow:
                 "highway_agent_obs_per_s": self.highway_steps_per_s * self.n_av}
 
 
-def _observe(scenes: list[Scene], cfg: ObservationConfig | None, rng: np.random.Generator) -> None:
-    if cfg is None:
-        return
-    from latentdrive.observe import render_frame
-
-    for scene in scenes:
-        render_frame(scene, scene.agents, cfg, rng=rng)
-
-
 def measure_throughput(
     scenario: str | ScenarioSpec,
     batch_size: int = 64,
     fast_steps: int = 50,
     highway_steps: int = 40,
-    velocity_maps: bool = False,
-    obs_cfg: ObservationConfig | None = None,
     seed: int = 0,
 ) -> ThroughputRow:
-    """Env steps/s of a ``batch_size`` FastBatch and of the highway-env reference.
+    """Env steps/s of the simulation alone: a ``batch_size`` FastBatch and the highway-env
+    reference (observations: see :func:`latentdrive.bench.measure_env_throughput`).
 
     Both take random meta-actions, reset an environment as soon as its episode ends, and
-    produce a Scene per environment per step (and, with ``velocity_maps``, a VelocityMap
-    frame for every AV). The fast figure counts ``batch_size`` env steps per batch step.
+    produce a Scene per environment per step. The fast figure counts ``batch_size`` env
+    steps per batch step.
     """
     spec = get_spec(scenario)
-    cfg = (obs_cfg or ObservationConfig()) if velocity_maps else None
     rng = np.random.default_rng(seed)
-    noise = np.random.default_rng([seed, 2])
 
     backend = HighwayBackend(spec)
     scene = backend.reset(seed)
@@ -302,7 +294,6 @@ def measure_throughput(
     t0 = time.perf_counter()
     for _ in range(highway_steps):
         scene = backend.step(rng.integers(0, 5, spec.n_av))
-        _observe([scene], cfg, noise)
         if _done(scene, round(scene.time * spec.policy_frequency), spec):
             scene = backend.reset(seed + episodes)
             episodes += 1
@@ -315,13 +306,12 @@ def measure_throughput(
     t0 = time.perf_counter()
     for _ in range(fast_steps):
         scenes = batch.step(rng.integers(0, 5, (batch_size, spec.n_av)))
-        _observe(scenes, cfg, noise)
         done = [i for i, s in enumerate(scenes) if _done(s, round(s.time * spec.policy_frequency), spec)]
         if done:
             batch.reset(list(range(next_seed, next_seed + len(done))), done)
             next_seed += len(done)
     fast = fast_steps * batch_size / (time.perf_counter() - t0)
-    return ThroughputRow(spec.name, spec.n_av + spec.n_hv, spec.n_av, batch_size, velocity_maps, highway, fast)
+    return ThroughputRow(spec.name, spec.n_av + spec.n_hv, spec.n_av, batch_size, False, highway, fast)
 
 
 def measure_scaling(
@@ -353,12 +343,11 @@ def measure_scaling(
 
 
 def format_throughput(rows: list[ThroughputRow]) -> str:
-    """A plain-text table of the rows."""
+    """A plain-text table of the rows (with the speed-up's range where a row is a median)."""
     lines = [f"{'scenario':<13}{'vehicles':>9}{'batch':>7}{'maps':>6}{'highway steps/s':>17}{'fast steps/s':>14}"
-             f"{'speed-up':>10}{'highway agent-obs/s':>21}{'fast agent-obs/s':>18}"]
+             f"{'speed-up':>10}{'runs':>6}{'range':>14}"]
     for r in rows:
-        obs = (f"{r.highway_steps_per_s * r.n_av:>21.1f}{r.fast_agent_obs_per_s:>18.0f}" if r.velocity_maps
-               else f"{'-':>21}{'-':>18}")
+        spread = f"{r.speedup_min:.0f}-{r.speedup_max:.0f}x" if r.runs > 1 else "-"
         lines.append(f"{r.scenario:<13}{r.vehicles:>9}{r.batch_size:>7}{'yes' if r.velocity_maps else 'no':>6}"
-                     f"{r.highway_steps_per_s:>17.1f}{r.fast_steps_per_s:>14.0f}{r.speedup:>9.0f}x{obs}")
+                     f"{r.highway_steps_per_s:>17.1f}{r.fast_steps_per_s:>14.0f}{r.speedup:>9.0f}x{r.runs:>6}{spread:>14}")
     return "\n".join(lines)

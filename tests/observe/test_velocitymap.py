@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from latentdrive.config import ObservationConfig
-from latentdrive.observe import CHANNELS, FrameStack, render_frame, velocity_log_map
+from latentdrive.observe import CHANNELS, FrameStack, draw_noise, render_frame, velocity_log_map
 from latentdrive.observe.velocitymap import AV, HV, MV, RL
 from latentdrive.scene import Kind, RoadRaster, Scene, rasterize_strips
 
@@ -351,3 +351,48 @@ def test_frame_stack_is_copy_safe_and_checks_use():
     assert np.all(fs.stack == 1.0)
     with pytest.raises(ValueError):
         fs.push(np.zeros((1, 4, 3, 5), dtype=np.float32))
+
+
+def test_frame_stack_push_moves_only_the_chosen_rows():
+    fs = FrameStack(3)
+    fs.reset(_frame(0.0))
+    fs.push(_frame(1.0), rows=np.array([True, False]))
+    fs.push(_frame(2.0), rows=np.array([False, True]))
+    stack = fs.stack
+    np.testing.assert_array_equal(stack[0, 0, :, 0, 0], [0.0, 0.0, 1.0])
+    np.testing.assert_array_equal(stack[1, 0, :, 0, 0], [0.0, 0.0, 2.0])
+
+
+def test_noise_draws_given_or_drawn_render_alike():
+    scene = _busy_scene()
+    drawn = render_frame(scene, scene.agents, CFG, np.random.default_rng(5))
+    draws = draw_noise(np.random.default_rng(5), scene.n_agents, scene.n_vehicles, CFG.noise)
+    np.testing.assert_array_equal(render_frame(scene, scene.agents, CFG, noise=draws), drawn)
+    # One observer's rows of the same draws give that observer's frame.
+    np.testing.assert_array_equal(render_frame(scene, scene.agents[1:], CFG, noise=draws.rows(np.array([1])))[0], drawn[1])
+    with pytest.raises(ValueError, match="not both"):
+        render_frame(scene, scene.agents, CFG, np.random.default_rng(5), noise=draws)
+    with pytest.raises(ValueError, match="noise draws are"):
+        render_frame(scene, scene.agents[:1], CFG, noise=draws)
+
+
+def test_frame_stack_keeps_its_frames_in_the_storage_given():
+    storage = np.zeros((2, 4, 3, 3, 5), dtype=np.float32)
+    fs = FrameStack(3, storage)
+    fs.reset(_frame(1.0))
+    fs.push(_frame(2.0))
+    assert fs.view is storage and storage[:, :, -1].min() == 2.0 and storage[:, :, 0].max() == 1.0
+    with pytest.raises(ValueError, match="does not fit"):
+        fs.reset(np.zeros((1, 4, 3, 5), dtype=np.float32))
+    with pytest.raises(ValueError, match="storage must be"):
+        FrameStack(2, storage)
+
+
+def test_noise_draws_follow_the_documented_stream_order():
+    cfg = CFG.noise
+    draws = draw_noise(np.random.default_rng(9), 3, 4, cfg)
+    rng = np.random.default_rng(9)
+    np.testing.assert_array_equal(draws.position, rng.standard_normal((3, 4, 2)) * cfg.position_std)
+    np.testing.assert_array_equal(draws.heading, rng.standard_normal((3, 4)) * cfg.heading_std)
+    np.testing.assert_array_equal(draws.speed, rng.standard_normal((3, 4)) * cfg.speed_std)
+    np.testing.assert_array_equal(draws.missed, rng.random((3, 4)) < cfg.miss_prob)

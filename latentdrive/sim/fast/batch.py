@@ -18,9 +18,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from latentdrive.actions import N_ACTIONS
+from latentdrive.config import ObservationConfig
+from latentdrive.observe import SensorNoise
 from latentdrive.scenarios.spec import ScenarioSpec
 from latentdrive.scene import Kind, RoadRaster, Scene
 from latentdrive.sim.fast.branch import Branches, BranchPart, take_rows
+from latentdrive.sim.fast.krender import GRID_ROWS, render_rows
 from latentdrive.sim.fast.kreset import PF_ROWS, PI_ROWS, load_rows
 from latentdrive.sim.fast.kstep import step_envs
 from latentdrive.sim.fast.network import Network, get_network
@@ -243,6 +246,60 @@ class FastBatch:
             st.env_i[N_AV].copy(),
             st.env_f[TIME].copy(),
         )
+
+    def render(self, env_ids: Sequence[int], cfg: ObservationConfig, noise: Sequence[SensorNoise] | None,
+               observing: NDArray[np.bool_]) -> NDArray[np.float32]:
+        """VelocityMap frames of the current instant, one compiled call per road layout.
+
+        Args:
+            env_ids: ``(K,)`` environments to render.
+            cfg: the observation's geometry and eq. 13 coefficients.
+            noise: per environment, the frame's draws ``(n_av, n_veh)`` of
+                :func:`~latentdrive.observe.draw_noise`; None renders the clean scene.
+            observing: ``(K, A)`` bool, the AVs that get a frame (``A`` = the batch's
+                largest AV count).
+
+        Returns:
+            ``(K, A, 4, H, W)`` float32: frame ``[k, a]`` is AV ``a``'s of environment
+            ``env_ids[k]``, as :func:`~latentdrive.observe.render_frame` draws it within
+            the last bit of a logarithm; zeros where ``observing`` is False.
+        """
+        ids = [int(i) for i in env_ids]
+        width = int(self._n_av.max())
+        seen = np.asarray(observing, dtype=bool)
+        if seen.shape != (len(ids), width):
+            raise ValueError(f"observing must be ({len(ids)}, {width}), got {seen.shape}")
+        if noise is not None and len(noise) != len(ids):
+            raise ValueError(f"got noise draws for {len(noise)} environments, rendering {len(ids)}")
+        if not self._ready[ids].all():
+            raise RuntimeError("reset() the environments before rendering them")
+        out = np.zeros((len(ids), width, 4, cfg.height, cfg.width), dtype=np.float32)
+        grid = np.array([getattr(cfg, name) for name in GRID_ROWS], dtype=np.float64)
+        by_group: dict[int, list[int]] = {}
+        for k, i in enumerate(ids):
+            by_group.setdefault(self._where[i][0], []).append(k)
+        for g, ks in by_group.items():
+            group = self._groups[g]
+            st = group.state
+            slots = np.asarray(ks, dtype=np.int64)
+            rows = np.array([self._where[ids[k]][1] for k in ks], dtype=np.int64)
+            shape = (len(ks), width, st.f.shape[2]) if noise is not None else (1, 1, 1)
+            d_pos, d_head = np.zeros((*shape, 2)), np.zeros(shape)
+            d_speed, missed = np.zeros(shape), np.zeros(shape, dtype=bool)
+            if noise is not None:
+                for j, k in enumerate(ks):
+                    n_obs, n_veh = noise[k].heading.shape
+                    if (n_obs, n_veh) != (self._n_av[ids[k]], st.env_i[N_VEH, rows[j]]):
+                        raise ValueError(f"environment {ids[k]}: noise draws are {(n_obs, n_veh)}, its frame "
+                                         f"needs {(int(self._n_av[ids[k]]), int(st.env_i[N_VEH, rows[j]]))}")
+                    d_pos[j, :n_obs, :n_veh] = noise[k].position
+                    d_head[j, :n_obs, :n_veh] = noise[k].heading
+                    d_speed[j, :n_obs, :n_veh] = noise[k].speed
+                    missed[j, :n_obs, :n_veh] = noise[k].missed
+            raster = group.raster
+            render_rows(st.f, st.i[KIND], st.env_i, rows, slots, seen[slots], noise is not None,
+                        d_pos, d_head, d_speed, missed, raster.mask, raster.origin, raster.resolution, grid, out)
+        return out
 
     def lane_keys(self, i: int) -> list[tuple[str, str, int]]:
         """highway-env lane index ``(from, to, id)`` each vehicle of environment ``i`` is on."""
