@@ -122,7 +122,7 @@ def ws(tmp_path_factory: pytest.TempPathFactory) -> Path:
         (w / name / "split.json").write_text('{"train_episodes": [], "val_episodes": []}\n')
     # A BNN run that train-bnn's defaults resume, whose training log is damaged.
     model_cfg = BottleneckConfig(input_shape=(2, 16, 32), latent_dim=64, channels=(16, 32))
-    train_cfg = validate(BNNTrainConfig, {"lambda_distance": 0.0, "seed": 0, "foreground_weight": 1.0})
+    train_cfg = validate(BNNTrainConfig, {"lambda_distance": 0.0, "seed": 0})
     net = BottleneckNetwork(model_cfg)
     save_checkpoint(w / "bnn_bad_log" / "checkpoint.safetensors", net, torch.optim.AdamW(net.parameters()),
                     step=0, epoch=1, config={"train": train_cfg.model_dump(mode="json"),
