@@ -27,11 +27,9 @@ import math
 import time
 from collections.abc import Callable, Iterable
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
-from pydantic import Field, field_validator
 
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import (
@@ -40,18 +38,17 @@ from latentdrive.bnn.checkpoint import (
     save_checkpoint,
 )
 from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
-from latentdrive.bnn.losses import CellWeights, LossKind, step_losses
+from latentdrive.bnn.losses import step_losses
 from latentdrive.bnn.prefetch import prefetch
 from latentdrive.bnn.resume import CHECKPOINT_NAME, check_run_dir, saved_configs
 from latentdrive.bnn.runlog import Meter, metrics_log, peak_rss_mb, write_metrics
-from latentdrive.config import Config, config_hash, validate
+from latentdrive.bnn.train_config import BNNTrainConfig
+from latentdrive.config import config_hash, validate
 from latentdrive.fileio import atomic_write_text
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.runlock import dir_lock
 from latentdrive.runtime import (
-    Precision,
     autocast,
-    check_device,
     resolve_device,
     resolve_precision,
     torch_settings,
@@ -73,179 +70,6 @@ CONFIG_NAME = "config.json"
 #: which :func:`load_trained_bottleneck` loads; ``checkpoint.safetensors`` is the last
 #: epoch's, which a resumed run continues from.
 BEST_NAME = "best.safetensors"
-
-Phase = Literal["pretrain", "mixed"]
-
-
-
-
-class BNNTrainConfig(Config):
-    """Training of the bottleneck network."""
-
-    pretrain_epochs: int = Field(
-        10, ge=0, le=100_000,
-        description="Epochs of plain reconstruction training on shuffled mixed data "
-        "(phase 'pretrain').",
-    )
-    mixed_epochs: int = Field(
-        90, ge=0, le=100_000,
-        description="Epochs of training on batches holding every scenario, with the λ-weighted "
-        "scenario-distance term (phase 'mixed'). The paper trains 100 epochs in all.",
-    )
-    batch_size: int = Field(
-        64, ge=1, le=1 << 20,
-        description="Observations per batch, samples. The batch functions decide the batches; "
-        "array_batches_fn takes this value.",
-    )
-    lr: float = Field(1e-3, gt=0.0, le=1.0, description="AdamW (peak) learning rate, per step.")
-    lr_schedule: Literal["constant", "cosine", "warmup_cosine"] = Field(
-        "warmup_cosine",
-        description="'constant': lr throughout. 'cosine': lr in the first epoch, then down a "
-        "half cosine to lr_final_fraction·lr in the last one, set per epoch. "
-        "'warmup_cosine': set per step: a linear warm-up over the first warmup_fraction of "
-        "the run's steps, then a half cosine down to lr_final_fraction·lr at its last step "
-        "(needs the number of steps per epoch, which train-bnn and the studies know). Both "
-        "follow from the step or epoch and the totals, so a resumed run follows the same "
-        "curve (unless the epoch counts change on resumption).",
-    )
-    lr_final_fraction: float = Field(
-        0.05, ge=0.0, le=1.0,
-        description="The cosine schedules' last learning rate, as a fraction of lr.",
-    )
-    warmup_fraction: float = Field(
-        0.05, ge=0.0, lt=1.0,
-        description="Share of the run's steps spent warming the learning rate up linearly "
-        "('warmup_cosine' only).",
-    )
-    weight_decay: float = Field(
-        0.0, ge=0.0, le=1.0,
-        description="AdamW decoupled weight decay, per step (multiplied by lr).",
-    )
-    lambda_distance: float = Field(
-        0.0, ge=0.0, le=1e6,
-        description="λ: weight of the latent scenario-distance regularizer (mean pairwise MMD², "
-        "dimensionless) in the mixed phase. 0 trains on reconstruction only.",
-    )
-    loss: LossKind = Field(
-        "bce",
-        description="Per-cell reconstruction error: 'l2' (squared error of the sigmoid output, "
-        "the paper's eq. 11) or 'bce' (binary cross-entropy with the decoder's logits, which "
-        "learns vehicle cells without the sigmoid's damping; see "
-        "latentdrive.bnn.losses.reconstruction_error). Validation reports the plain MSE and "
-        "the loss under the training weights.",
-    )
-    foreground_weight: float = Field(
-        20.0, ge=1.0, le=1e4,
-        description="Weight, in the reconstruction loss, of vehicle cells (non-zero clean target in the HV, "
-        "AV and MV channels) at the first step; other cells weigh 1 (times their channel "
-        "weight), and the loss is divided by the total weight. 1 with road_weight = "
-        "av_weight = 1 and loss 'l2' is the paper's plain L2 (eq. 11). Vehicles cover about "
-        "1% of mostly empty maps, so a plain mean is nearly minimized by drawing no vehicle "
-        "at all; a weight > 1 makes missing them costly.",
-    )
-    foreground_weight_final: float | None = Field(
-        None, ge=1.0, le=1e4,
-        description="Vehicle-cell weight at the last step, reached linearly over the run's "
-        "steps: a high weight buys recall early (every car drawn), a lower one precision late "
-        "(no halo around them). None keeps foreground_weight throughout. In short runs a "
-        "falling weight cost more recall than it bought precision (docs/bnn-notes.md).",
-    )
-    road_weight: float = Field(
-        0.3, gt=0.0, le=1e4,
-        description="Weight of the road-layout channel's cells. The noise-free road is "
-        "otherwise most of the loss (1 is the paper's plain mean).",
-    )
-    av_weight: float = Field(
-        1.0 / 3.0, gt=0.0, le=1e4,
-        description="Weight of each of the three copies of the AV channel (one per pair): "
-        "1/3 makes the AV channel weigh as one channel in all; 1 is the paper's plain mean, "
-        "where it counts three times.",
-    )
-    val_every: int = Field(
-        2, ge=1, le=100_000,
-        description="Validate every this many epochs, and after the last one. Validation "
-        "scores every vehicle of the held-out maps, a noticeable share of a short epoch.",
-    )
-    precision: Precision = Field(
-        "auto",
-        description="'auto' (bf16 autocast on CUDA and on CPUs with AMX-BF16 or AVX512-BF16, "
-        "fp32 elsewhere), 'fp32' or 'bf16'. Weights, optimizer state and losses stay float32. "
-        "bf16 results are reproducible on one machine, not bitwise across machines.",
-    )
-    prefetch: int = Field(
-        2, ge=0, le=64,
-        description="Batches prepared ahead on a background thread while the model trains "
-        "(0: none). Does not change results.",
-    )
-    max_grad_norm: float = Field(
-        0.0, ge=0.0,
-        description="Clip the global gradient L2 norm to this value; 0 disables clipping.",
-    )
-    seed: int = Field(
-        0, ge=0, le=2**63 - 1,
-        description="Seed of the weight initialization and of the trainer's numpy generator.",
-    )
-    device: str = Field(
-        "auto", description="'auto' (CUDA if available, else CPU), 'cpu', 'cuda' or 'cuda:N'."
-    )
-    num_threads: int = Field(
-        0, ge=0, le=1024,
-        description="CPU threads for torch operations during the run (restored after); 0 keeps "
-        "torch's default. On a shared machine fewer threads than cores avoids oversubscription, "
-        "which can slow small models several-fold. Results may differ in the last bits "
-        "between thread counts.",
-    )
-    deterministic: bool = Field(
-        True,
-        description="Use deterministic algorithms (strict on CPU; warn-only on CUDA, where some "
-        "kernels have no deterministic variant).",
-    )
-    log_every: int = Field(
-        10, ge=1, description="Optimizer steps between metric rows in metrics.csv and TensorBoard."
-    )
-    val_mmd_samples: int = Field(
-        256, ge=2, le=100_000,
-        description="Validation latents per scenario (samples, drawn without replacement) used "
-        "for the validation scenario distance.",
-    )
-
-    _check_device = field_validator("device")(check_device)
-
-    @property
-    def total_epochs(self) -> int:
-        """Pretraining plus mixed epochs."""
-        return self.pretrain_epochs + self.mixed_epochs
-
-    def _cosine(self, frac: float) -> float:
-        final = self.lr_final_fraction
-        return self.lr * (final + (1.0 - final) * 0.5 * (1.0 + math.cos(math.pi * frac)))
-
-    def epoch_lr(self, epoch: int) -> float:
-        """Learning rate of global epoch ``epoch`` (0-based) under the 'cosine' or 'constant' schedule."""
-        if self.lr_schedule == "constant" or self.total_epochs <= 1:
-            return self.lr
-        return self._cosine(min(epoch, self.total_epochs - 1) / (self.total_epochs - 1))
-
-    def step_lr(self, step: int, total_steps: int) -> float:
-        """Learning rate of optimizer step ``step`` (0-based) of ``total_steps`` under 'warmup_cosine'."""
-        warm = int(self.warmup_fraction * total_steps)
-        if step < warm:
-            return self.lr * (step + 1) / warm
-        rest = total_steps - warm
-        return self._cosine(min(step - warm, rest - 1) / (rest - 1)) if rest > 1 else self.lr
-
-    def cell_weights(self, step: int, total_steps: int) -> CellWeights:
-        """The loss's cell weights at step ``step`` of ``total_steps`` (see :attr:`foreground_weight_final`)."""
-        fg = self.foreground_weight
-        if self.foreground_weight_final is not None and total_steps > 1:
-            frac = min(step, total_steps - 1) / (total_steps - 1)
-            fg += (self.foreground_weight_final - fg) * frac
-        return CellWeights(fg, self.road_weight, self.av_weight)
-
-    def phase(self, epoch: int) -> Phase:
-        """The phase of global epoch ``epoch`` (0-based)."""
-        return "pretrain" if epoch < self.pretrain_epochs else "mixed"
-
 
 # ---------------------------------------------------------------------------------------
 # Training
