@@ -102,8 +102,9 @@ def merge_overrides(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> di
         if rest:
             value = {rest: value}
         current = out.get(head)
-        if isinstance(value, Mapping) and isinstance(current, Mapping):
-            out[head] = merge_overrides(current, value)
+        if isinstance(value, Mapping):
+            # Into an empty section too, so that dotted keys nested deeper are expanded.
+            out[head] = merge_overrides(current if isinstance(current, Mapping) else {}, value)
         else:
             out[head] = value
     return out

@@ -50,3 +50,9 @@ def test_config_hash_tracks_values_only():
     a, b = ObservationConfig(), ObservationConfig()
     assert config_hash(a) == config_hash(b)
     assert config_hash(a) != config_hash(a.replace(frames=2))
+
+
+def test_dotted_overrides_three_levels_deep_expand_into_a_missing_section():
+    # Regression: the second key used to stay dotted ("planner.depth": unknown key).
+    merged = merge_overrides({}, {"imitation.planner.depth": 3, "imitation.planner.rounds": 1})
+    assert merged == {"imitation": {"planner": {"depth": 3, "rounds": 1}}}

@@ -37,7 +37,7 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
     if args.config:
         # A config file (tune's best.yaml), under the flags and --set.
         base = merge_overrides(base, load_yaml(args.config))
-    flags = {"mode": args.mode, "bnn": args.bnn, "steps": args.steps, "seed": args.seed, "envs": args.envs,
+    flags = {"mode": args.mode, "learner": args.learner, "bnn": args.bnn, "steps": args.steps, "seed": args.seed, "envs": args.envs,
              "backend": args.backend, "init_from": args.init_from}
     data = merge_overrides(base, {k: v for k, v in flags.items() if v is not None})
     if args.scenarios:
@@ -191,12 +191,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def add_policy_parsers(sub: Any) -> None:
     """Add ``train-policy`` and ``evaluate`` to the CLI's sub-parsers."""
-    s = sub.add_parser("train-policy", help="train a driving policy (multi-agent double DQN on a VFAN)",
+    s = sub.add_parser("train-policy", help="train a driving policy (multi-agent double DQN on a VFAN, or the imitation reference)",
                        description="Train a policy in RUN. Interrupt it at any time; --resume continues from the "
                        "last checkpoint and ends with the weights an uninterrupted run would have.")
     s.add_argument("run", help="run directory (config.json, checkpoint, metrics.csv, eval.csv, tb/)")
     s.add_argument("--mode", choices=["raw", "latent", "latent-random", "end-to-end"], default=None,
                    help="input representation (default latent)")
+    s.add_argument("--learner", choices=["dqn", "dagger"], default=None,
+                   help="dqn: double DQN on the reward (default); dagger: imitate the lookahead planner through the "
+                   "same observation and network (the imitation reference; fast backend)")
     s.add_argument("--bnn", default=None, help="BNN run directory (train-bnn); required by --mode latent")
     s.add_argument("--scenarios", default="", help="comma-separated scenarios (default merge); a mixture plays each on its share of the envs")
     s.add_argument("--steps", type=int, default=None, help="budget in agent-transitions (default 50000)")

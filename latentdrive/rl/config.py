@@ -9,6 +9,7 @@ from pydantic import Field, ValidationInfo, field_validator, model_validator
 from latentdrive.config import Config, ConfigError, ObservationConfig
 from latentdrive.models.vfan import MODES, Mode, VFANConfig
 from latentdrive.rl.dqn import DQNConfig
+from latentdrive.rl.imitate import ImitationConfig
 from latentdrive.runtime import PRECISIONS, Precision, check_device
 from latentdrive.scenarios import (
     RewardConfig,
@@ -34,7 +35,9 @@ class PolicyTrainConfig(Config):
     init_from: str | None = Field(None, description="Policy run directory whose final weights initialize this run (fine-tuning, transfer learning).")
     observation: ObservationConfig = Field(default_factory=ObservationConfig, description="VelocityMap settings; must match the BNN's input.")
     reward: RewardConfig = Field(default_factory=RewardConfig, description="Per-agent reward weights while training (evaluation rates do not depend on them).")
-    dqn: DQNConfig = Field(default_factory=DQNConfig, description="Q-learning hyperparameters.")
+    learner: Literal["dqn", "dagger"] = Field("dqn", description="How the network learns: 'dqn', multi-agent double DQN on the reward (the paper's method); 'dagger', imitation of the lookahead planner's actions on the states the policy visits (the imitation reference: what a policy reading this observation can reach; fast backend only). See latentdrive.rl.imitate.")
+    dqn: DQNConfig = Field(default_factory=DQNConfig, description="Q-learning hyperparameters. Under learner 'dagger' only lr, batch_size, buffer_size (the labelled decisions kept), learning_starts, updates_per_transition and grad_clip apply.")
+    imitation: ImitationConfig = Field(default_factory=ImitationConfig, description="DAgger settings (learner 'dagger' only).")
     vfan: VFANConfig = Field(default_factory=VFANConfig, description="VFAN body architecture.")
     segment: int = Field(10_000, ge=1, description="Agent-transitions between checkpoints. Every environment is reset at a segment boundary, from a seed fixed by (seed, segment index), so a resumed run continues exactly as an uninterrupted one.")
     eval_every: int = Field(2, ge=0, description="Evaluate on held-out seeds every this many segments, and at the end (0: only at the end).")
@@ -77,6 +80,9 @@ class PolicyTrainConfig(Config):
             raise ValueError("mode 'latent' needs a trained BNN: give bnn (train-policy --bnn RUN)")
         if self.mode == "raw" and self.bnn:
             raise ValueError("mode 'raw' takes no BNN")
+        if self.learner == "dagger" and self.backend != "fast":
+            raise ValueError("learner 'dagger' needs backend 'fast': its expert, the lookahead planner, branches "
+                             "the simulation state")
         return self
 
 

@@ -36,6 +36,7 @@ __all__ = [
     "build_network",
     "changed_scenarios",
     "encoder_config",
+    "greedy_actions",
     "greedy_policy",
     "load_policy_network",
     "read_run_config",
@@ -140,13 +141,19 @@ def q_values(net: QNetwork, feats: torch.Tensor, dtype: torch.dtype = torch.floa
         return net(flat).float().reshape(*feats.shape[:2], -1)
 
 
+def greedy_actions(net: QNetwork, cache: FeatureCache, inp: PolicyInput) -> NDArray[np.int64]:
+    """The network's greedy actions ``(num_envs, n_av)`` on ``inp``, features from ``cache``
+    (exact for the active AVs)."""
+    return q_values(net, cache(inp.obs, inp.active), cache.dtype).argmax(dim=-1).cpu().numpy().astype(np.int64)
+
+
 def epsilon_greedy(net: QNetwork, cache: FeatureCache, rng: np.random.Generator,
                    eps: Callable[[], float]) -> Policy:
     """ε-greedy over the cached features. Draws the same random numbers every step,
     whoever is active, so the stream does not depend on the episodes' course."""
 
     def policy(inp: PolicyInput) -> NDArray[np.int64]:
-        greedy = q_values(net, cache(inp.obs, inp.active), cache.dtype).argmax(dim=-1).cpu().numpy()
+        greedy = greedy_actions(net, cache, inp)
         explore = rng.random(greedy.shape) < eps()
         random = rng.integers(0, N_ACTIONS, size=greedy.shape)
         return np.where(explore, random, greedy).astype(np.int64)
@@ -161,7 +168,7 @@ def greedy_policy(net: QNetwork, device: torch.device, dtype: torch.dtype = torc
         cache = FeatureCache(net, device, dtype)
 
         def policy(inp: PolicyInput) -> NDArray[np.int64]:
-            return q_values(net, cache(inp.obs, inp.active), dtype).argmax(dim=-1).cpu().numpy().astype(np.int64)
+            return greedy_actions(net, cache, inp)
 
         return policy
 

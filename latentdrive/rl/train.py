@@ -34,6 +34,7 @@ from latentdrive.bnn.checkpoint import (
 from latentdrive.bnn.runlog import RunLog
 from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.errors import first_line
+from latentdrive.evaluate.planner import planner_policy
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined, read_log
@@ -42,6 +43,13 @@ from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.rl.dqn import epsilon, priority_beta, soft_update, update, updates_owed
+from latentdrive.rl.imitate import (
+    ExpertLabels,
+    dagger_policy,
+    expert_share,
+    imitation_update,
+    label_weights,
+)
 from latentdrive.rl.nstep import NStepEntries, NStepWindow
 from latentdrive.rl.policy import (
     CHECKPOINT,
@@ -51,6 +59,7 @@ from latentdrive.rl.policy import (
     changed_scenarios,
     encoder_config,
     epsilon_greedy,
+    greedy_actions,
     greedy_policy,
     load_policy_network,
     read_run_config,
@@ -100,7 +109,12 @@ def make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> Observati
 
 
 class Learner:
-    """Replay writing and updates; one instance per run."""
+    """Replay writing and updates; one instance per run.
+
+    Under ``learner: dagger`` the replay aggregates the planner's labels (its ``action``
+    slot holds the label, rewards are kept but unused) and updates fit them
+    (:mod:`latentdrive.rl.imitate`); the target network is kept but never read.
+    """
 
     def __init__(self, cfg: PolicyTrainConfig, net: QNetwork, device: torch.device, n_slots: int) -> None:
         self.cfg, self.net, self.device = cfg, net, device
@@ -119,7 +133,15 @@ class Learner:
         self.learn_seconds = 0.0  # wall time in updates (for the benchmark)
         self.cache = FeatureCache(net, device, self.dtype)
 
+    @property
+    def imitating(self) -> bool:
+        return self.cfg.learner == "dagger"
+
     def eps(self) -> float:
+        """The share of actions that are not the network's greedy choice: ε of ε-greedy,
+        or under DAgger β, the planner's share."""
+        if self.imitating:
+            return expert_share(self.cfg.imitation, self.transitions, self.cfg.steps)
         return epsilon(self.cfg.dqn, self.transitions, self.cfg.steps)
 
     def start_segment(self, obs_feats: torch.Tensor) -> np.ndarray:
@@ -128,8 +150,12 @@ class Learner:
         flat = obs_feats.reshape(e * a, *obs_feats.shape[2:]).cpu().numpy()
         return self.replay.store.add(flat, np.full(e * a, -1, dtype=np.int64)).reshape(e, a)
 
-    def record(self, rec: StepRecord, cur: np.ndarray, cache: FeatureCache) -> np.ndarray:
-        """Store the step's transitions; returns the agents' current observation ids."""
+    def record(self, rec: StepRecord, cur: np.ndarray, cache: FeatureCache,
+               labels: np.ndarray | None = None) -> np.ndarray:
+        """Store the step's transitions; returns the agents' current observation ids.
+
+        ``labels`` ``(num_envs, n_av)``: the expert's actions (DAgger), stored in place of
+        the actions taken, one step each."""
         ag = rec.agents
         ei, ai = np.nonzero(ag.acting)
         # Encoded once: the policy reuses it on the next step. Needed: where a transition
@@ -147,10 +173,13 @@ class Learner:
         # terminated (crash, mission done) does not bootstrap; cut-off agents (another AV
         # crashed, time ran out, the segment ended) do: see rl.dqn.td_targets. The window
         # turns the one-step transitions into n-step ones (rl.nstep).
-        if self.window is None:
-            self.window = NStepWindow(self.cfg.dqn.n_step, self.cfg.dqn.gamma, cur.shape)
-        self._store(self.window.push(ei, ai, cur[ei, ai], rec.actions[ei, ai], ag.reward[ei, ai], next_ids,
-                                     ag.terminated[ei, ai], ag.truncated[ei, ai]))
+        if labels is not None:
+            self.replay.add(cur[ei, ai], labels[ei, ai], ag.reward[ei, ai], next_ids, ag.terminated[ei, ai])
+        else:
+            if self.window is None:
+                self.window = NStepWindow(self.cfg.dqn.n_step, self.cfg.dqn.gamma, cur.shape)
+            self._store(self.window.push(ei, ai, cur[ei, ai], rec.actions[ei, ai], ag.reward[ei, ai], next_ids,
+                                         ag.terminated[ei, ai], ag.truncated[ei, ai]))
         cur = cur.copy()
         cur[ei, ai] = next_ids
         for e in np.flatnonzero(rec.ended):
@@ -183,6 +212,14 @@ class Learner:
     def update_step(self) -> None:
         """One sampled minibatch, one gradient step, and the target update when it is due."""
         d = self.cfg.dqn
+        if self.imitating:
+            batch = self.replay.sample(self.rng, d.batch_size, self.device)
+            weights = None
+            if self.cfg.imitation.class_weighted:
+                weights = torch.from_numpy(label_weights(self.replay.action[:len(self.replay)])).to(self.device)
+            self.losses.append(imitation_update(self.net, self.optimizer, batch, weights, d.grad_clip, self.dtype))
+            self.updates += 1
+            return
         beta = priority_beta(d, self.transitions, self.cfg.steps)
         batch = self.replay.sample(self.rng, d.batch_size, self.device, beta=beta)
         stats = update(self.net, self.target, self.optimizer, batch, d, self.dtype)
@@ -264,14 +301,22 @@ class Learner:
 
 
 def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]:
-    """The training loop proper: act ε-greedily, store the step's transitions, learn; yields each step."""
+    """The training loop proper: act (ε-greedily, or under DAgger mixing in the planner's
+    actions), store the step's transitions, learn; yields each step."""
     cache = learner.cache
-    policy = epsilon_greedy(learner.net, cache, learner.rng, learner.eps)
+    labels: ExpertLabels | None = None
+    if learner.imitating:
+        labels = ExpertLabels()
+        net = learner.net
+        expert = planner_policy(learner.cfg.imitation.planner, learner.cfg.reward)
+        policy = dagger_policy(expert, lambda inp: greedy_actions(net, cache, inp), learner.rng, learner.eps, labels)
+    else:
+        policy = epsilon_greedy(learner.net, cache, learner.rng, learner.eps)
     cur: np.ndarray | None = None
     for rec in rollout(vec, policy, seed=seed):
         if cur is None:
             cur = learner.start_segment(cache(rec.obs))
-        cur = learner.record(rec, cur, cache)
+        cur = learner.record(rec, cur, cache, None if labels is None else labels.latest)
         learner.learn()
         yield rec
 

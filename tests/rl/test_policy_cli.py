@@ -248,3 +248,17 @@ def test_latent_init_from_checks_the_bnn_by_its_weights_not_its_path(tmp_path, c
     capsys.readouterr()
     _fails(capsys, ["train-policy", str(tmp_path / "src"), "--bnn", str(other), "--resume",
                     "--mode", "latent", "--steps", "120", *TINY_SETS, "-q"], "another BNN", tmp_path)
+
+
+def test_dagger_on_highway_env_is_one_line(tmp_path, capsys):
+    _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "raw", "--learner", "dagger", "--backend", "highway",
+                    *TINY_SETS], "learner 'dagger' needs backend 'fast'", tmp_path)
+
+
+def test_train_policy_learner_dagger_trains_an_imitation_run(tmp_path, capsys):
+    run = tmp_path / "imitation"
+    assert main(["train-policy", str(run), "--mode", "raw", "--learner", "dagger", "--steps", "60", "-q",
+                 "--scenarios", "intersection", "--set", "dqn.learning_starts=20", "--set", "imitation.planner.depth=3",
+                 "--set", "imitation.planner.rounds=1", *TINY_SETS]) == 0
+    assert json.loads((run / "config.json").read_text())["train"]["learner"] == "dagger"
+    assert "done: " in capsys.readouterr().out
