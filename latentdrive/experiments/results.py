@@ -25,6 +25,7 @@ from latentdrive.experiments.graph import Graph, StepRecord
 from latentdrive.experiments.steps import OUTCOMES, PROBES, RUN
 from latentdrive.experiments.study import (
     ABLATIONS,
+    IMITATION,
     REPS,
     ReproduceConfig,
     policy_name,
@@ -229,6 +230,11 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
     if exp.ablations:
         variants = [*REPS, *ABLATIONS]
         res["ablations"] = {v: st.kind(v, MIXED, [MIXED])[MIXED] for v in variants}
+
+    if exp.imitation:
+        # Every test set, beside the mix policies and the references on the same episodes.
+        res["imitation"] = {"policy": st.kind(IMITATION, MIXED),
+                            "vs_raw": st.paired("raw", IMITATION, MIXED, MIXED)["failure"]}
 
     if exp.probe_episodes:
         res["probes"] = read_probe_results(graph.folder(out, "probes") / PROBES)

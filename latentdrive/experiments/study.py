@@ -7,7 +7,10 @@ Policies (per training seed and representation):
 - ``policy/<rep>/without-<scenario>/s<k>``: every scenario but one (leave-one-out; the
   pretraining of transfer learning when the left-out one is the transfer target);
 - ``policy/<rep>/<target>-finetuned/s<k>``: that pretraining fine-tuned on the target;
-- ablations on the mix: ``latent-random``, ``end-to-end`` and ``latent-lam`` (the λ > 0 BNN).
+- ablations on the mix: ``latent-random``, ``end-to-end`` and ``latent-lam`` (the λ > 0 BNN);
+- ``policy/imitation/mixed/s<k>`` (``experiments.imitation``): the imitation reference, the
+  raw-mode network trained by DAgger from the lookahead planner on the mix
+  (:mod:`latentdrive.rl.imitate`), with as many labelled decisions as a policy's budget.
 
 Every policy is evaluated on every scenario (``evaluate/<policy>``), which gives the
 train × test matrices; the reference policies (random, rule, the lookahead planner) on the
@@ -45,15 +48,18 @@ from latentdrive.scenarios import (
     resolve_specs,
 )
 
-__all__ = ["PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config", "policy_name", "reference_name"]
+__all__ = ["IMITATION", "PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config", "policy_name", "reference_name"]
 
 PRESETS = ("tiny", "quick", "paper")
 PRESETS_DIR = Path(__file__).parent / "presets"
 REPS = ("raw", "latent")
 ABLATIONS = ("latent-random", "end-to-end", "latent-lam")
+#: The imitation reference's policy kind (raw mode, learner dagger).
+IMITATION = "imitation"
 # Agent-transitions per second of a whole policy step on one core (quick study, 2 workers on
 # 2 cores); only for the progress display's ETA and the order in which steps start.
-_RATE = {"raw": 45.0, "latent": 110.0, "latent-random": 110.0, "end-to-end": 45.0, "latent-lam": 110.0}
+_RATE = {"raw": 45.0, "latent": 110.0, "latent-random": 110.0, "end-to-end": 45.0, "latent-lam": 110.0,
+         IMITATION: 12.0}
 
 
 class StudyPolicyConfig(Config):
@@ -93,6 +99,7 @@ class StudyExperimentsConfig(Config):
     transfer_target: str | None = Field("roundabout", description="Scenario fine-tuned on after pretraining on the others (none: skip transfer learning).")
     leave_one_out: bool = Field(True, description="Train on all scenarios but one, test zero-shot on it, for every scenario.")
     ablations: bool = Field(True, description="latent-random, end-to-end and the λ > 0 BNN on the mix, beside latent and raw.")
+    imitation: bool = Field(False, description="The imitation reference on the mix, per training seed: the raw-mode network trained by DAgger from the lookahead planner (evaluate.planner) with policy.steps labelled decisions, evaluated beside the planner as the failure rate shown reachable from the map. The planner labels every decision, so it trains at roughly a tenth of a DQN policy's speed.")
     probe_episodes: int = Field(20, ge=0, le=100_000, description="Episodes per scenario (rule driver) on which linear probes read driving quantities from raw, latent and random-encoder features (0: skip).")
 
 
@@ -137,13 +144,16 @@ class ReproduceConfig(Config):
         return self
 
     def policy_config(self, mode: str, scenarios: tuple[str, ...], seed: int, steps: int,
-                      finetune: bool = False) -> PolicyTrainConfig:
-        """The train-policy config of one study policy (its BNN and initial weights are inputs)."""
+                      finetune: bool = False, imitation: bool = False) -> PolicyTrainConfig:
+        """The train-policy config of one study policy (its BNN and initial weights are inputs);
+        with ``imitation``, the DAgger run whose expert is the study's planner."""
         data = merge_overrides({"mode": mode, "scenarios": list(scenarios), "seed": seed, "steps": steps,
                                 "observation": self.observation.model_dump(), "reward": self.reward.model_dump()},
                                self.policy.train)
         if finetune:
             data = merge_overrides(data, self.policy.finetune)
+        if imitation:
+            data = merge_overrides(data, {"learner": "dagger", "imitation.planner": self.evaluate.planner.model_dump()})
         if mode == "latent":
             data["bnn"] = "(the study's BNN)"  # a placeholder for validation; the step fills in the path
         try:
@@ -209,8 +219,9 @@ def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] |
     eval_cost = ev.episodes * len(cfg.scenarios) * 0.05
 
     def policy(rep: str, train_set: str, scenarios: tuple[str, ...], seed: int, steps_: int, init: str | None = None) -> str:
-        mode = "latent" if rep == "latent-lam" else rep
-        pcfg = cfg.policy_config(mode, scenarios, seed, steps_, finetune=init is not None).model_dump(mode="json")
+        mode = {"latent-lam": "latent", IMITATION: "raw"}.get(rep, rep)
+        pcfg = cfg.policy_config(mode, scenarios, seed, steps_, finetune=init is not None,
+                                 imitation=rep == IMITATION).model_dump(mode="json")
         # The step's key holds the specs' hashes ("specs"); the run fills in the specs
         # themselves and stores them in its own config.json.
         pcfg.update(bnn=None, init_from=None)
@@ -242,6 +253,8 @@ def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] |
         if exp.ablations:
             for rep in ABLATIONS:
                 policy(rep, "mixed", cfg.scenarios, seed, cfg.policy.steps)
+        if exp.imitation:
+            policy(IMITATION, "mixed", cfg.scenarios, seed, cfg.policy.steps)
 
     for ref in ev.references:
         planner = ev.planner.model_dump(mode="json") if ref == "plan" else None

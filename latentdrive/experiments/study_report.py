@@ -98,6 +98,24 @@ def _scale(res: dict[str, Any]) -> list[str]:
     return lines
 
 
+def _imitation(res: dict[str, Any]) -> list[str]:
+    """Section 1's imitation-reference table: what a policy reading the map reached by imitation."""
+    im, refs = res["imitation"], res["references"]
+    mix = {rep: res["matrix"][rep]["mixed"] for rep in ("raw", "latent")}  # failure means over seeds
+    rows = [[t, _pct(mix["raw"][t]), _pct(mix["latent"][t]), _agg(im["policy"][t]["failure"]),
+             *(_pct(refs[ref][t]["failure"]["rate"]) if ref in refs else "–" for ref in ("rule", "plan"))]
+            for t in res["tests"]]
+    vs = im["vs_raw"]
+    return ["", "**The imitation reference.** The raw-mode network trained by DAgger to copy the planner's "
+            "decisions from the map, with as many labelled decisions as a policy's budget: the failure rate shown "
+            "reachable from this observation at this budget, beside the planner's privileged floor "
+            "(failure %, mix policies):", "",
+            *_table(["test set", "raw (DQN)", "latent (DQN)", "imitation", "rule", "planner"], rows), "",
+            f"Raw DQN against the imitation reference on the same mixed episodes (seed k against seed k): "
+            f"{100 * vs['difference']:+.1f} percentage points of failures [{100 * vs['lo']:+.1f}, {100 * vs['hi']:+.1f}], "
+            f"McNemar p {_p(vs['p_value'])}."]
+
+
 def write_report(res: dict[str, Any], out: Path) -> str:
     """Write ``out/report.md`` and ``out/figures``; return the summary table."""
     figures = out / "figures"
@@ -134,6 +152,9 @@ def write_report(res: dict[str, Any], out: Path) -> str:
         md += _table(["policy", "seed", "policy fail %", "random fail %", "McNemar p"],
                      [[rep, str(k), _pct(t["rate_a"]), _pct(t["rate_b"]), _p(t["p_value"])]
                       for rep, tests in res["vs_random"].items() for k, t in enumerate(tests)])
+
+    if "imitation" in res:
+        md += _imitation(res)
 
     tests = res["tests"]
     md += ["", "## 2. Train × test", "", "![matrix](figures/matrix.png)", ""]

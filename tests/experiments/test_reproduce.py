@@ -28,12 +28,20 @@ def test_the_tiny_study_reports_every_experiment(tiny_study: Path) -> None:
             assert 0 <= row[rep]["failure"]["mean"] <= 1 and row[rep]["failure"]["seeds"] == 1
         assert row["paired"]["failure"]["n"] == 2 * (len(scen) if row["test"] == "mixed" else 1)
     assert all(s["peak_rss_mb"] > 0 for s in res["steps"].values())
+    # The imitation reference: a DAgger run, evaluated on every test set and paired with raw.
+    im = res["imitation"]
+    assert set(im["policy"]) == {*scen, "mixed"} and 0 <= im["policy"]["mixed"]["failure"]["mean"] <= 1
+    assert im["vs_raw"]["n"] == 2 * len(scen)
+    run_cfg = json.loads(next(tiny_study.glob("steps/policy-imitation-mixed-s0-*/run/config.json")).read_text())
+    assert run_cfg["train"]["learner"] == "dagger" and run_cfg["train"]["mode"] == "raw"
+    assert run_cfg["train"]["imitation"]["planner"]["depth"] == 2  # the study's planner is the expert
     # Finished policies keep their checkpoint, not the replay that only resuming needs.
     assert list(tiny_study.glob("steps/policy-*/run/checkpoint.safetensors"))
     assert not list(tiny_study.glob("steps/policy-*/run/replay-*"))
     report = (tiny_study / "report.md").read_text()
     for section in ("Bottleneck vs baseline", "Train × test", "Domain adaptation", "Transfer learning",
-                    "Leave one scenario out", "Ablations", "Bottleneck network", "linear probes", "What this run can and cannot show"):
+                    "Leave one scenario out", "Ablations", "Bottleneck network", "linear probes", "What this run can and cannot show",
+                    "The imitation reference"):
         assert section in report
     for fig in ("headline", "matrix", "transfer", "leave_one_out", "ablations", "bnn_loss", "bnn_distance"):
         assert (tiny_study / "figures" / f"{fig}.png").stat().st_size > 1000
