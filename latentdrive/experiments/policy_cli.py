@@ -45,7 +45,12 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
         # A resumed run's stored specs stand for the names it keeps.
         data["specs"] = {k: v for k, v in (data.get("specs") or {}).items() if k in data["scenarios"]}
     data = merge_overrides(data, parse_override_args(args.overrides))
-    cfg = validate(PolicyTrainConfig, data)
+    try:
+        cfg = validate(PolicyTrainConfig, data)
+    except ConfigError as exc:
+        if not args.config:
+            raise
+        raise ConfigError(f"{exc} (settings from {args.config}, the flags and --set)") from None
     result = train_policy(cfg, args.run, resume=args.resume, progress=not args.quiet, say=_say)
     ev = result.get("evaluation") or {}
     mixed = ev.get("mixed")

@@ -222,7 +222,8 @@ def test_train_policy_refuses_a_bad_config_file(tmp_path, capsys):
     bad = tmp_path / "bad.yaml"
     bad.write_text("dqn: {lr: -1}\n")
     assert main(["train-policy", str(tmp_path / "run"), "--config", str(bad), "--mode", "raw", "-q"]) == 2
-    assert "dqn.lr" in _error(capsys)
+    message = _error(capsys)
+    assert "dqn.lr" in message and str(bad) in message  # names the file the setting may come from
     assert main(["train-policy", str(tmp_path / "run"), "--config", str(tmp_path / "none.yaml"), "-q"]) == 2
     assert "no such config file" in _error(capsys)
     assert not (tmp_path / "run").exists()
