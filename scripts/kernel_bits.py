@@ -18,6 +18,8 @@ import argparse
 import csv
 import json
 import os
+import shutil
+import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -37,7 +39,9 @@ print(json.dumps({"capability": torch.backends.cpu.get_cpu_capability(),
 
 def _capabilities() -> list[str]:
     """The ATen capabilities this CPU runs (torch falls back silently from the others)."""
-    probe = "import torch; print(torch.backends.cpu.get_cpu_capability())"
+    # Forced onto instructions the CPU lacks, a kernel dies (SIGILL): run one to know.
+    probe = ("import torch; torch.nn.functional.conv3d(torch.rand(1, 1, 4, 4, 4), torch.rand(2, 1, 3, 3, 3)); "
+             "print(torch.backends.cpu.get_cpu_capability())")
     found: list[str] = []
     for cap in ("default", "avx2", "avx512"):
         res = subprocess.run([sys.executable, "-c", probe], env={**os.environ, "ATEN_CPU_CAPABILITY": cap},
@@ -57,7 +61,13 @@ def _train(out: Path, steps: int, scenario: str, episodes: int) -> int:
             cmd = [sys.executable, "-m", "latentdrive", "train-policy", str(run), "--mode", "raw", "--scenarios", scenario,
                    "--steps", str(steps), "--envs", "8", "--seed", "0", "-q", "--set", "eval_every=0",
                    "--set", f"eval_episodes={episodes}", "--set", "segment=100000"]
-            subprocess.run(cmd, env={**os.environ, "ATEN_CPU_CAPABILITY": cap}, check=True, stdout=subprocess.DEVNULL)
+            res = subprocess.run(cmd, env={**os.environ, "ATEN_CPU_CAPABILITY": cap}, check=False,
+                                 stdout=subprocess.DEVNULL)
+            if res.returncode == -signal.SIGILL:  # a kernel this CPU cannot run
+                print(f"{cap}: not available on this CPU")
+                shutil.rmtree(run, ignore_errors=True)
+                continue
+            res.check_returncode()
         weights[cap] = {k: v for k, v in load_file(str(run / "checkpoint.safetensors")).items() if k.startswith("model/")}
         with open(run / "eval.csv", newline="") as f:
             row = [r for r in csv.DictReader(f) if r["scenario"] == "mixed"][-1]
