@@ -13,8 +13,14 @@ from latentdrive.experiments.study import build_graph, load_reproduce_config
 def test_the_tiny_graph_holds_every_experiment_with_the_right_inputs() -> None:
     g = build_graph(load_reproduce_config("tiny"))
     kinds = collections.Counter(s.kind for s in g.steps.values())
-    # 3 scenarios: per representation 3 oracles + mix + 3 leave-one-out + 1 fine-tuned; 3 ablations.
-    assert kinds["policy"] == 2 * 8 + 3 and kinds["evaluate"] == kinds["policy"] + 3
+    # 3 scenarios: per representation 3 oracles + mix + 3 leave-one-out + 1 fine-tuned; 3 ablations;
+    # the imitation reference.
+    assert kinds["policy"] == 2 * 8 + 3 + 1 and kinds["evaluate"] == kinds["policy"] + 3
+    imitation = g.steps["policy/imitation/mixed/s0"]
+    assert imitation.inputs == {} and imitation.config["train"]["learner"] == "dagger"
+    assert imitation.config["train"]["mode"] == "raw"
+    assert "policy/imitation/mixed/s0" not in build_graph(
+        load_reproduce_config("tiny", {"experiments": {"imitation": False}})).steps
     assert kinds["bnn"] == 3 and kinds["dataset"] == 1 and kinds["probes"] == 1
     ft = g.steps["policy/latent/roundabout-finetuned/s0"]
     assert ft.inputs == {"bnn": "bnn/d8", "init": "policy/latent/without-roundabout/s0"}
