@@ -98,12 +98,17 @@ def merge_overrides(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> di
     """
     out: dict[str, Any] = {k: v for k, v in base.items()}
     for key, value in overrides.items():
+        if not isinstance(key, str):  # not a setting's name: validation refuses it in one line
+            out[key] = value
+            continue
         head, _, rest = key.partition(".")
         if rest:
             value = {rest: value}
         current = out.get(head)
-        if isinstance(value, Mapping):
-            # Into an empty section too, so that dotted keys nested deeper are expanded.
+        if isinstance(value, Mapping) and (rest or isinstance(current, Mapping)):
+            # A dotted key goes into an empty section too, so that its deeper dots expand
+            # (a.b.c); a mapping given whole replaces a missing section as it is, so that
+            # keys holding dots of their own (spec file names under specs) stay whole.
             out[head] = merge_overrides(current if isinstance(current, Mapping) else {}, value)
         else:
             out[head] = value

@@ -39,12 +39,17 @@ def main() -> int:
                    reward=cfg.reward.model_dump())
     cache = FeatureCache(net, torch.device("cpu"))
     confusion = np.zeros((N_ACTIONS, N_ACTIONS), dtype=np.int64)
-    names = np.array([spec.name] * args.envs, dtype=object)
+    plan = planner_policy(cfg.imitation.planner, cfg.reward)
+
+    def both(inp: PolicyInput) -> np.ndarray:
+        """The planner drives; the network is asked about the very same input."""
+        planned = plan(inp)
+        own = greedy_actions(net, cache, inp)
+        np.add.at(confusion, (planned[inp.active], own[inp.active]), 1)
+        return planned
+
     # Validation set 1: neither the evaluation sets nor the set a search scores on.
-    for rec in rollout(vec, planner_policy(cfg.imitation.planner, cfg.reward), seed=validation_reset_seed(1)):
-        own = greedy_actions(net, cache, PolicyInput(rec.obs, rec.scenes, rec.agents.acting, names))
-        acting = rec.agents.acting
-        np.add.at(confusion, (rec.actions[acting], own[acting]), 1)
+    for _ in rollout(vec, both, seed=validation_reset_seed(1)):
         if confusion.sum() >= args.decisions:
             break
     vec.close()

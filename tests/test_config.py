@@ -56,3 +56,9 @@ def test_dotted_overrides_three_levels_deep_expand_into_a_missing_section():
     # Regression: the second key used to stay dotted ("planner.depth": unknown key).
     merged = merge_overrides({}, {"imitation.planner.depth": 3, "imitation.planner.rounds": 1})
     assert merged == {"imitation": {"planner": {"depth": 3, "rounds": 1}}}
+
+
+def test_a_section_given_whole_keeps_keys_with_dots_and_odd_keys_stay_for_validation():
+    specs = {"specs": {"runs/my.yaml": {"name": "x"}}}
+    assert merge_overrides({}, specs) == specs
+    assert merge_overrides({"dqn": {"lr": 1}}, {"dqn": {1: 2}}) == {"dqn": {"lr": 1, 1: 2}}

@@ -232,7 +232,8 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
         res["ablations"] = {v: st.kind(v, MIXED, [MIXED])[MIXED] for v in variants}
 
     if exp.imitation:
-        # Every test set, beside the mix policies and the references on the same episodes.
+        # Paired with raw on the same episodes: the gap between what Q-learning reached and
+        # what copying the planner reached, from the same map and budget.
         res["imitation"] = {"policy": st.kind(IMITATION, MIXED),
                             "vs_raw": st.paired("raw", IMITATION, MIXED, MIXED)["failure"]}
 

@@ -99,7 +99,7 @@ class StudyExperimentsConfig(Config):
     transfer_target: str | None = Field("roundabout", description="Scenario fine-tuned on after pretraining on the others (none: skip transfer learning).")
     leave_one_out: bool = Field(True, description="Train on all scenarios but one, test zero-shot on it, for every scenario.")
     ablations: bool = Field(True, description="latent-random, end-to-end and the λ > 0 BNN on the mix, beside latent and raw.")
-    imitation: bool = Field(False, description="The imitation reference on the mix, per training seed: the raw-mode network trained by DAgger from the lookahead planner (evaluate.planner) with policy.steps labelled decisions, evaluated beside the planner as the failure rate shown reachable from the map. The planner labels every decision, so it trains at roughly a tenth of a DQN policy's speed.")
+    imitation: bool = Field(False, description="The imitation reference on the mix, per training seed: the raw-mode network trained by DAgger from the lookahead planner (evaluate.planner) with policy.steps labelled decisions, evaluated beside the planner as the failure rate shown reachable from the map. The planner labels every decision, so it trains several times slower per decision than a DQN policy.")
     probe_episodes: int = Field(20, ge=0, le=100_000, description="Episodes per scenario (rule driver) on which linear probes read driving quantities from raw, latent and random-encoder features (0: skip).")
 
 

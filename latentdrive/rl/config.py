@@ -83,6 +83,9 @@ class PolicyTrainConfig(Config):
         if self.learner == "dagger" and self.backend != "fast":
             raise ValueError("learner 'dagger' needs backend 'fast': its expert, the lookahead planner, branches "
                              "the simulation state")
+        if self.learner == "dagger" and (self.dqn.n_step > 1 or self.dqn.prioritized):
+            raise ValueError("learner 'dagger' fits labels, not returns: dqn.n_step must be 1 and dqn.prioritized "
+                             "false")
         return self
 
 

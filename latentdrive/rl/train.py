@@ -132,6 +132,8 @@ class Learner:
         self.losses: list[float] = []
         self.learn_seconds = 0.0  # wall time in updates (for the benchmark)
         self.cache = FeatureCache(net, device, self.dtype)
+        self._weights = torch.ones(0)  # DAgger's class weights, as of replay.added == _weights_at
+        self._weights_at = -1
 
     @property
     def imitating(self) -> bool:
@@ -214,9 +216,7 @@ class Learner:
         d = self.cfg.dqn
         if self.imitating:
             batch = self.replay.sample(self.rng, d.batch_size, self.device)
-            weights = None
-            if self.cfg.imitation.class_weighted:
-                weights = torch.from_numpy(label_weights(self.replay.action[:len(self.replay)])).to(self.device)
+            weights = self._label_weights() if self.cfg.imitation.class_weighted else None
             self.losses.append(imitation_update(self.net, self.optimizer, batch, weights, d.grad_clip, self.dtype))
             self.updates += 1
             return
@@ -231,6 +231,15 @@ class Learner:
             soft_update(self.target, self.net, d.tau)
         elif self.updates % d.target_update == 0:
             self.target.load_state_dict(self.net.state_dict())
+
+    def _label_weights(self) -> torch.Tensor:
+        """The class weights of the labels in the replay, recounted only when it changed
+        (once per environment step, not once per update)."""
+        if self._weights_at != self.replay.added:
+            labels = self.replay.action[:len(self.replay)]
+            self._weights = torch.from_numpy(label_weights(labels)).to(self.device)
+            self._weights_at = self.replay.added
+        return self._weights
 
     # ---- checkpoints ---------------------------------------------------------------
 

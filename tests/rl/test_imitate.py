@@ -116,6 +116,36 @@ def test_with_the_planner_always_driving_the_labels_are_the_planners_own_actions
     assert len(set(stored.tolist())) > 1  # the planner does more than one thing
 
 
+@pytest.mark.parametrize("mode", ["raw", "latent-random"])
+def test_with_the_network_driving_the_labels_are_still_the_planners(tmp_path, tiny, monkeypatch, mode):
+    import latentdrive.rl.train as train_module
+
+    logged: list[np.ndarray] = []
+
+    def logging_planner(cfg, reward):
+        plan = planner_policy(cfg, reward)
+
+        def policy(inp):
+            out = plan(inp)
+            logged.append(out[inp.active])
+            return out
+
+        return policy
+
+    monkeypatch.setattr(train_module, "planner_policy", logging_planner)
+    cfg = tiny(mode=mode, learner="dagger", steps=80, segment=200, dqn={"learning_starts": 40},
+               imitation={**FAST_EXPERT, "beta_start": 0.0, "beta_end": 0.0})
+    train_policy(cfg, tmp_path / "run", **_quiet())
+    stored = load_file(str(next((tmp_path / "run").glob("replay-*.safetensors"))))["replay/action"]
+    np.testing.assert_array_equal(stored, np.concatenate(logged)[:len(stored)])
+
+
+def test_dagger_refuses_settings_it_would_ignore():
+    for dqn in ({"n_step": 3}, {"prioritized": True}):
+        with pytest.raises(ConfigError, match=r"dqn\.n_step must be 1 and dqn\.prioritized false"):
+            validate(PolicyTrainConfig, {"mode": "raw", "learner": "dagger", "dqn": dqn})
+
+
 def test_a_dagger_run_is_deterministic_and_resumes_bit_for_bit(tmp_path, tiny):
     # A constant share, so that the first half's schedule does not depend on the budget.
     common = {"mode": "raw", "learner": "dagger", "segment": 80, "dqn": {"learning_starts": 40},
