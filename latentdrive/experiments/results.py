@@ -33,7 +33,7 @@ from latentdrive.experiments.study import (
 )
 from latentdrive.fileio import read_json, read_log
 from latentdrive.outcome import EpisodeOutcome, outcomes_from_json
-from latentdrive.rl.train import EVAL_COLUMNS, EVALS
+from latentdrive.rl.runfolder import EVAL_COLUMNS, EVALS
 
 __all__ = ["MIXED", "gather_results"]
 

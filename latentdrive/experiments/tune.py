@@ -39,7 +39,8 @@ from latentdrive.experiments.tune_space import TuneSpace, search_hash, trial_con
 from latentdrive.fileio import read_log
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import CHECKPOINT
-from latentdrive.rl.train import EVAL_COLUMNS, EVALS, train_policy
+from latentdrive.rl.runfolder import EVAL_COLUMNS, EVALS
+from latentdrive.rl.train import train_policy
 
 if TYPE_CHECKING:
     import optuna

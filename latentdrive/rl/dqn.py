@@ -19,7 +19,7 @@ from latentdrive.config import Config
 from latentdrive.rl.replay import Batch
 from latentdrive.runtime import autocast
 
-__all__ = ["DQNConfig", "UpdateStats", "epsilon", "priority_beta", "soft_update", "td_targets", "update",
+__all__ = ["DQNConfig", "UpdateStats", "epsilon", "linear_decay", "priority_beta", "soft_update", "td_targets", "update",
            "updates_owed"]
 
 #: Largest denominator of ``updates_per_transition`` (the ratio is kept as an exact fraction).
@@ -83,10 +83,15 @@ def updates_owed(cfg: DQNConfig, transitions: int) -> int:
     return max(0, (transitions - cfg.learning_starts) * ratio.numerator // ratio.denominator)
 
 
+def linear_decay(start: float, end: float, fraction: float, transitions: int, budget: int) -> float:
+    """From ``start`` at 0 linearly to ``end`` after ``fraction · budget`` transitions, then flat."""
+    frac = min(1.0, transitions / max(1.0, fraction * budget))
+    return start + frac * (end - start)
+
+
 def epsilon(cfg: DQNConfig, transitions: int, budget: int) -> float:
     """ε after ``transitions`` agent-transitions of a ``budget``: linear, then flat."""
-    frac = min(1.0, transitions / max(1.0, cfg.eps_fraction * budget))
-    return cfg.eps_start + frac * (cfg.eps_end - cfg.eps_start)
+    return linear_decay(cfg.eps_start, cfg.eps_end, cfg.eps_fraction, transitions, budget)
 
 
 def priority_beta(cfg: DQNConfig, transitions: int, budget: int) -> float:

@@ -35,6 +35,7 @@ from torch import nn
 from latentdrive.actions import N_ACTIONS
 from latentdrive.config import Config
 from latentdrive.evaluate.planner import PlannerConfig
+from latentdrive.rl.dqn import linear_decay
 from latentdrive.rl.replay import Batch
 from latentdrive.rollout import Policy, PolicyInput
 from latentdrive.runtime import autocast
@@ -60,8 +61,7 @@ class ImitationConfig(Config):
 
 def expert_share(cfg: ImitationConfig, transitions: int, budget: int) -> float:
     """β after ``transitions`` labelled decisions of a ``budget``: linear, then flat."""
-    frac = min(1.0, transitions / max(1.0, cfg.beta_fraction * budget))
-    return cfg.beta_start + frac * (cfg.beta_end - cfg.beta_start)
+    return linear_decay(cfg.beta_start, cfg.beta_end, cfg.beta_fraction, transitions, budget)
 
 
 class ExpertLabels:

@@ -13,7 +13,6 @@ experience per segment and nothing in correctness.
 from __future__ import annotations
 
 import copy
-import json
 import re
 import time
 from collections.abc import Callable, Iterator
@@ -32,13 +31,12 @@ from latentdrive.bnn.checkpoint import (
     tensors_digest,
 )
 from latentdrive.bnn.runlog import RunLog
-from latentdrive.config import ConfigError, config_hash, validate
+from latentdrive.config import ConfigError
 from latentdrive.errors import first_line
 from latentdrive.evaluate.planner import planner_policy
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
-from latentdrive.fileio import atomic_write_bytes, atomic_write_text, confined, read_log
-from latentdrive.models.bottleneck import BottleneckConfig
+from latentdrive.fileio import atomic_write_bytes, confined
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
@@ -53,36 +51,36 @@ from latentdrive.rl.imitate import (
 from latentdrive.rl.nstep import NStepEntries, NStepWindow
 from latentdrive.rl.policy import (
     CHECKPOINT,
-    CONFIG,
     FeatureCache,
     build_network,
-    changed_scenarios,
     encoder_config,
     epsilon_greedy,
     greedy_actions,
     greedy_policy,
-    load_policy_network,
-    read_run_config,
-    scenario_hashes,
 )
 from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Replay
+from latentdrive.rl.runfolder import (
+    EVALS,
+    LOGS,
+    METRICS,
+    check_resume,
+    init_weights,
+    read_logs,
+    stored_encoder,
+    write_config,
+)
 from latentdrive.rollout import StepRecord, rollout
 from latentdrive.runlock import dir_lock
 from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
 from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed, validation_reset_seed
 from latentdrive.vec import make_vec
 
-__all__ = ["EVALS", "EVAL_COLUMNS", "REPLAY_PATTERN", "EvalCallback", "Learner", "TrainResult", "learner_steps",
+__all__ = ["REPLAY_PATTERN", "EvalCallback", "Learner", "TrainResult", "learner_steps",
            "make_store", "train_policy"]
 
 #: Replay of segment k: ``replay-<k>.safetensors``. A new name per segment, so that a kill
 #: while saving never leaves a checkpoint beside a replay it does not belong to.
 REPLAY_PATTERN = re.compile(r"replay-(\d{1,9})\.safetensors")
-METRICS = "metrics.csv"
-EVALS = "eval.csv"
-_METRIC_COLUMNS = ("transitions", "updates", "episodes", "epsilon", "loss", "train_failure_rate",
-                   "train_crash_rate", "transitions_per_s", "elapsed_s")
-EVAL_COLUMNS = ("transitions", "scenario", "episodes", "failure_rate", "crash_rate", "success_rate", "mean_return")
 
 
 #: Called after each periodic evaluation, once its checkpoint is saved, with the
@@ -330,66 +328,6 @@ def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]
         yield rec
 
 
-def _write_config(run_dir: Path, cfg: PolicyTrainConfig, net: QNetwork, enc: Any) -> None:
-    data = {
-        "kind": "policy",
-        "train": cfg.model_dump(mode="json"),
-        "encoder": None if enc is None else enc.model_dump(mode="json"),
-        "parameters": net.parameter_count(),
-        "config_hash": config_hash(cfg),
-        # The specs themselves are in "train"; their hashes let a glance tell two runs' apart.
-        "scenario_hashes": scenario_hashes(cfg.specs),
-    }
-    atomic_write_text(run_dir / CONFIG, json.dumps(data, indent=1) + "\n")
-
-
-def _check_resume(run_dir: Path, cfg: PolicyTrainConfig) -> None:
-    data = read_run_config(run_dir)
-    moved = changed_scenarios(data)
-    if moved:
-        raise ConfigError(f"{run_dir}: the scenario spec of {', '.join(moved)} changed since this run "
-                          "was trained; train a new run")
-    saved = data["train"]
-    now = cfg.model_dump(mode="json")
-    # The budget may grow on resumption; everything else must match. The BNN and init_from
-    # are folders, which may have moved (a study folder finished elsewhere): the weights
-    # come from the checkpoint, and only the encoder's are checked, by value.
-    changed = sorted(k for k in now if k not in ("steps", "bnn", "init_from") and saved.get(k) != now[k])
-    if changed:
-        raise ConfigError(f"{run_dir}: --resume with a different config ({', '.join(changed)} changed)")
-    if cfg.mode == "latent" and saved.get("bnn") != now["bnn"]:
-        mine = build_network(cfg, encoder_config(cfg), load_bnn_weights=True).state_dict()
-        if not _same_encoder(mine, load_policy_network(run_dir)[0].state_dict()):
-            raise ConfigError(f"{run_dir}: --resume with another BNN ({cfg.bnn} holds other weights than the "
-                              f"run's {saved.get('bnn')})")
-
-
-def _stored_encoder(run_dir: Path) -> BottleneckConfig | None:
-    """The encoder architecture a run's config.json records (its weights are in the checkpoint)."""
-    data = read_run_config(run_dir)
-    return validate(BottleneckConfig, data["encoder"]) if data.get("encoder") else None
-
-
-def _same_encoder(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor]) -> bool:
-    """The frozen encoder weights of two latent-mode networks are equal."""
-    keys = [k for k in a if k.startswith("encoder.")]
-    return all(k in b and torch.equal(a[k], b[k]) for k in keys)
-
-
-_LOGS = {METRICS: ("training log", _METRIC_COLUMNS), EVALS: ("evaluation log", EVAL_COLUMNS)}
-
-
-def _read_logs(run_dir: Path) -> dict[str, list[dict[str, str]]]:
-    """The rows of a run's metrics.csv and eval.csv, checked before anything is written."""
-    logs: dict[str, list[dict[str, str]]] = {}
-    for name, (what, cols) in _LOGS.items():
-        try:
-            logs[name] = read_log(run_dir / name, columns=cols, key="transitions", what=what)
-        except FileNotFoundError:
-            logs[name] = []
-    return logs
-
-
 def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> dict[str, Any]:
     net.eval()
     # Validation episodes when a search scores this run, an evaluation set otherwise.
@@ -400,24 +338,6 @@ def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> di
                                reward=cfg.reward.model_dump())
     net.train()
     return policy_report(outcomes).as_dict()
-
-
-def _init_weights(cfg: PolicyTrainConfig) -> dict[str, torch.Tensor]:
-    """The weights ``--init-from`` names, checked before anything is written."""
-    assert cfg.init_from is not None
-    src, src_cfg = load_policy_network(cfg.init_from)
-    if src_cfg.mode != cfg.mode:
-        raise ConfigError(f"--init-from {cfg.init_from}: a {src_cfg.mode} run cannot initialize a {cfg.mode} run")
-    mine = build_network(cfg, encoder_config(cfg), load_bnn_weights=cfg.mode == "latent").state_dict()
-    theirs = src.state_dict()
-    if mine.keys() != theirs.keys() or any(mine[k].shape != theirs[k].shape for k in mine):
-        raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's")
-    # Its weights include the frozen encoder: the run would not use the BNN its config names.
-    # Compared by weights, not by path, so a study folder can move or be mounted elsewhere.
-    if cfg.mode == "latent" and not _same_encoder(mine, theirs):
-        raise ConfigError(f"--init-from {cfg.init_from}: it was trained on another BNN than {cfg.bnn} "
-                          f"(its config names {src_cfg.bnn})")
-    return theirs
 
 
 def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = False,
@@ -436,12 +356,12 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
     # A resumed run's checkpoint holds its encoder's weights: it needs its BNN folder only
     # if that is still there (to check it), not when the run was moved without it.
     bnn_gone = resume and cfg.bnn is not None and not (Path(cfg.bnn) / CHECKPOINT).exists()
-    enc = _stored_encoder(root) if bnn_gone else encoder_config(cfg)  # checked before anything is written
+    enc = stored_encoder(root) if bnn_gone else encoder_config(cfg)  # checked before anything is written
     if resume:
-        _check_resume(root, cfg)
+        check_resume(root, cfg)
     else:
         check_mission_pays(cfg)
-    init_state = _init_weights(cfg) if cfg.init_from and not resume else None
+    init_state = init_weights(cfg) if cfg.init_from and not resume else None
     root.mkdir(parents=True, exist_ok=True)
     with dir_lock(root, "train-policy"), torch_settings(True, device, cfg.threads):
         net = build_network(cfg, enc, load_bnn_weights=not bnn_gone).to(device)
@@ -454,12 +374,12 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
                        observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
         learner = Learner(cfg, net, device, cfg.envs * vec.n_av)
         # Everything a resumption reads is checked before anything is written.
-        logs = _read_logs(root) if resume else {}
+        logs = read_logs(root) if resume else {}
         segment = learner.load(root) if resume else 0
-        _write_config(root, cfg, net, enc)
+        write_config(root, cfg, net, enc)
         if not resume:
             say(f"{cfg.mode}: {net.parameter_count()} parameters")
-        log = RunLog(root, {name: cols for name, (_, cols) in _LOGS.items()}, "transitions",
+        log = RunLog(root, {name: cols for name, (_, cols) in LOGS.items()}, "transitions",
                      learner.transitions if resume else None, logs)
         try:
             return _run(cfg, root, net, learner, vec, segment, device, log, progress, on_eval)
