@@ -15,6 +15,10 @@ the states it visits itself (dataset aggregation, Ross, Gordon and Bagnell, AIST
   the network's outputs, read as logits, at ``dqn.updates_per_transition`` updates per
   labelled decision, with ``dqn.lr``, ``dqn.batch_size`` and ``dqn.grad_clip``.
 
+The expert can also be the rule driver (``expert: rule``): its decisions follow from what
+the map shows, so a copy that matches it shows that the network reads the map, and a gap
+to the planner is then about what the planner alone knows.
+
 The greedy action of the trained network (argmax of its outputs) is the policy, so every
 tool that reads a policy run (``evaluate``, the study) reads an imitation run too. It is a
 reference, not the paper's method: it needs the planner, hence the fast backend, while
@@ -24,6 +28,7 @@ training, and a planner that knows every driver's next move while labelling.
 from __future__ import annotations
 
 from collections.abc import Callable
+from typing import Literal
 
 import numpy as np
 import torch
@@ -34,29 +39,41 @@ from torch import nn
 
 from latentdrive.actions import N_ACTIONS
 from latentdrive.config import Config
-from latentdrive.evaluate.planner import PlannerConfig
+from latentdrive.evaluate.planner import PlannerConfig, planner_policy
+from latentdrive.evaluate.policies import reference_policy
 from latentdrive.rl.dqn import linear_decay
 from latentdrive.rl.replay import Batch
 from latentdrive.rollout import Policy, PolicyInput
 from latentdrive.runtime import autocast
+from latentdrive.scenarios import RewardConfig
 
-__all__ = ["ExpertLabels", "ImitationConfig", "dagger_policy", "expert_share", "imitation_update", "label_weights"]
+__all__ = ["ExpertLabels", "ImitationConfig", "dagger_policy", "expert_policy", "expert_share", "imitation_update", "label_weights"]
 
 
 class ImitationConfig(Config):
-    """Settings of a DAgger run (``train-policy --learner dagger``); the expert is the planner."""
+    """Settings of a DAgger run (``train-policy --learner dagger``)."""
 
+    expert: Literal["plan", "rule"] = Field("plan", description="Whose actions the network learns: 'plan', the lookahead planner (the imitation reference: it knows every driver's next move); 'rule', the rule driver of evaluate --policy rule, whose decision is a function of what the map shows (the leader's gap and the AV's own speed), so imitating it tests whether the network can read the map at all.")
     beta_start: float = Field(1.0, ge=0.0, le=1.0, description="Probability that an AV plays the planner's action rather than the network's at the first labelled decision.")
     beta_end: float = Field(0.0, ge=0.0, le=1.0, description="That probability after the decay (0: the policy drives alone, every later label is on its own states).")
     beta_fraction: float = Field(0.5, gt=0.0, le=1.0, description="Share of the budget over which the probability falls linearly from beta_start to beta_end.")
     class_weighted: bool = Field(True, description="Weight each label's cross-entropy by the inverse frequency of its action among the aggregated labels (the planner mostly plays Idle; unweighted, the rare lane changes and brakings hardly count).")
-    planner: PlannerConfig = Field(default_factory=PlannerConfig, description="The expert: the lookahead planner's settings.")
+    planner: PlannerConfig = Field(default_factory=PlannerConfig, description="The lookahead planner's settings (expert 'plan').")
 
     @model_validator(mode="after")
     def _check(self) -> ImitationConfig:
         if self.beta_end > self.beta_start:
             raise ValueError(f"beta_end={self.beta_end} exceeds beta_start={self.beta_start}")
         return self
+
+
+def expert_policy(cfg: ImitationConfig, reward: RewardConfig, seed: int) -> Policy:
+    """The expert that labels the decisions: the planner (under the run's reward) or the rule driver."""
+    if cfg.expert == "rule":
+        # No lane changes at random: the rule driver of the evaluation tables, whose every
+        # decision follows from the scene (``seed`` only feeds its unused random stream).
+        return reference_policy("rule", seed)()
+    return planner_policy(cfg.planner, reward)
 
 
 def expert_share(cfg: ImitationConfig, transitions: int, budget: int) -> float:

@@ -33,7 +33,6 @@ from latentdrive.bnn.checkpoint import (
 from latentdrive.bnn.runlog import RunLog
 from latentdrive.config import ConfigError
 from latentdrive.errors import first_line
-from latentdrive.evaluate.planner import planner_policy
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.fileio import atomic_write_bytes, confined
@@ -44,6 +43,7 @@ from latentdrive.rl.dqn import epsilon, priority_beta, soft_update, update, upda
 from latentdrive.rl.imitate import (
     ExpertLabels,
     dagger_policy,
+    expert_policy,
     expert_share,
     imitation_update,
     label_weights,
@@ -315,7 +315,7 @@ def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]
     if learner.imitating:
         labels = ExpertLabels()
         net = learner.net
-        expert = planner_policy(learner.cfg.imitation.planner, learner.cfg.reward)
+        expert = expert_policy(learner.cfg.imitation, learner.cfg.reward, seed)
         policy = dagger_policy(expert, lambda inp: greedy_actions(net, cache, inp), learner.rng, learner.eps, labels)
     else:
         policy = epsilon_greedy(learner.net, cache, learner.rng, learner.eps)

@@ -7,6 +7,7 @@ from safetensors.numpy import load_file
 
 from latentdrive.config import ConfigError, validate
 from latentdrive.evaluate.planner import planner_policy
+from latentdrive.evaluate.policies import reference_policy
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.imitate import (
     ExpertLabels,
@@ -97,28 +98,30 @@ def test_dagger_needs_the_fast_backend():
         validate(PolicyTrainConfig, {"mode": "raw", "learner": "dagger", "backend": "highway"})
 
 
-def test_with_the_planner_always_driving_the_labels_are_the_planners_own_actions(tmp_path, tiny):
-    cfg = tiny(mode="raw", learner="dagger", steps=120, segment=200, imitation={**FAST_EXPERT, "beta_start": 1.0, "beta_end": 1.0},
-               dqn={"learning_starts": 40})
+@pytest.mark.parametrize("expert", ["plan", "rule"])
+def test_with_the_expert_always_driving_the_labels_are_its_own_actions(tmp_path, tiny, expert):
+    cfg = tiny(mode="raw", learner="dagger", steps=120, segment=200,
+               imitation={**FAST_EXPERT, "expert": expert, "beta_start": 1.0, "beta_end": 1.0}, dqn={"learning_starts": 40})
     train_policy(cfg, tmp_path / "run", **_quiet())
     stored = load_file(str(next((tmp_path / "run").glob("replay-*.safetensors"))))["replay/action"]
-    # The same episodes driven by the planner alone: every acting AV's action, in the order
+    # The same episodes driven by the expert alone: every acting AV's action, in the order
     # the run stores its transitions (row-major over environments and AVs, step by step).
     vec = make_vec(cfg.scenario_specs(), cfg.envs, backend="fast", observation=cfg.observation.model_dump(),
                    reward=cfg.reward.model_dump())
     taken: list[np.ndarray] = []
-    for rec in rollout(vec, planner_policy(cfg.imitation.planner, cfg.reward), seed=train_reset_seed(cfg.seed, 0)):
+    alone = planner_policy(cfg.imitation.planner, cfg.reward) if expert == "plan" else reference_policy("rule")()
+    for rec in rollout(vec, alone, seed=train_reset_seed(cfg.seed, 0)):
         taken.append(rec.actions[rec.agents.acting])
         if sum(len(t) for t in taken) >= len(stored):
             break
     vec.close()
     np.testing.assert_array_equal(stored, np.concatenate(taken)[:len(stored)])
-    assert len(set(stored.tolist())) > 1  # the planner does more than one thing
+    assert len(set(stored.tolist())) > 1  # the expert does more than one thing
 
 
 @pytest.mark.parametrize("mode", ["raw", "latent-random"])
 def test_with_the_network_driving_the_labels_are_still_the_planners(tmp_path, tiny, monkeypatch, mode):
-    import latentdrive.rl.train as train_module
+    import latentdrive.rl.imitate as imitate_module
 
     logged: list[np.ndarray] = []
 
@@ -132,12 +135,17 @@ def test_with_the_network_driving_the_labels_are_still_the_planners(tmp_path, ti
 
         return policy
 
-    monkeypatch.setattr(train_module, "planner_policy", logging_planner)
+    monkeypatch.setattr(imitate_module, "planner_policy", logging_planner)
     cfg = tiny(mode=mode, learner="dagger", steps=80, segment=200, dqn={"learning_starts": 40},
                imitation={**FAST_EXPERT, "beta_start": 0.0, "beta_end": 0.0})
     train_policy(cfg, tmp_path / "run", **_quiet())
     stored = load_file(str(next((tmp_path / "run").glob("replay-*.safetensors"))))["replay/action"]
     np.testing.assert_array_equal(stored, np.concatenate(logged)[:len(stored)])
+
+
+def test_an_unknown_expert_is_refused():
+    with pytest.raises(ConfigError, match=r"imitation\.expert"):
+        validate(PolicyTrainConfig, {"mode": "raw", "learner": "dagger", "backend": "fast", "imitation": {"expert": "oracle"}})
 
 
 def test_dagger_refuses_settings_it_would_ignore():
