@@ -1,4 +1,4 @@
-"""``latentdrive train-policy`` and ``latentdrive evaluate``."""
+"""``latentdrive train-policy``, ``latentdrive evaluate`` and ``latentdrive curve``."""
 
 from __future__ import annotations
 
@@ -194,8 +194,52 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _labelled(arg: str) -> tuple[str | None, str]:
+    """``LABEL=RUN`` or ``RUN`` (a folder that exists is a run, even with '=' in its name)."""
+    if Path(arg).is_dir() or "=" not in arg:
+        return None, arg
+    label, run = arg.split("=", 1)
+    if not label:
+        raise ConfigError(f"{arg}: an empty label before '='")
+    return label, run
+
+
+def _cmd_curve(args: argparse.Namespace) -> int:
+    from latentdrive.evaluate.planner import planner_config_from_args
+    from latentdrive.evaluate.policies import REFERENCE_POLICIES
+    from latentdrive.experiments.curve import (
+        common_evaluation,
+        curve_table,
+        read_curve,
+        reference_rates,
+        write_curves,
+    )
+
+    problem = output_problem(args.out)
+    if problem:
+        raise ConfigError(f"{args.out}: cannot write a file there ({problem})")
+    if not args.out.endswith(".png"):
+        raise ConfigError(f"{args.out}: the figure is a PNG; name it *.png")
+    references = [] if args.references in ("", "none") else _split(args.references)
+    unknown = [r for r in references if r not in REFERENCE_POLICIES]
+    if unknown:
+        raise ConfigError(f"unknown reference policy {unknown[0]!r}: choose from {', '.join(REFERENCE_POLICIES)}")
+    if args.overrides and "plan" not in references:
+        raise ConfigError("--set planner.* given, but the planner ('plan') is not a reference")
+    curves = [read_curve(run, label, args.scenario) for label, run in map(_labelled, args.runs)]
+    cfg = common_evaluation(curves) if references else curves[0].config
+    if references:
+        _say(f"scoring {', '.join(references)} on the runs' evaluation episodes ...")
+    rates = reference_rates(cfg, references, args.scenario, planner_config_from_args(args.overrides))
+    print(f"held-out failure rate on {args.scenario} ({curves[0].episodes} episodes per evaluation); "
+          "failure % is the mean over the label's seeds at the evaluations all of them reached")
+    print(curve_table(curves, rates))
+    print(f"wrote {write_curves(args.out, curves, rates, args.title)}")
+    return 0
+
+
 def add_policy_parsers(sub: Any) -> None:
-    """Add ``train-policy`` and ``evaluate`` to the CLI's sub-parsers."""
+    """Add ``train-policy``, ``evaluate`` and ``curve`` to the CLI's sub-parsers."""
     s = sub.add_parser("train-policy", help="train a driving policy (multi-agent double DQN on a VFAN, or the imitation reference)",
                        description="Train a policy in RUN. Interrupt it at any time; --resume continues from the "
                        "last checkpoint and ends with the weights an uninterrupted run would have.")
@@ -241,3 +285,21 @@ def add_policy_parsers(sub: Any) -> None:
                    help="lookahead planner setting, repeatable (--set planner.depth=5 --set planner.rounds=1)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=_cmd_evaluate)
+
+    s = sub.add_parser("curve", help="learning curves: held-out failure rate against agent-transitions and minutes",
+                       description="Draw the periodic held-out evaluations of policy runs (their eval.csv; train "
+                       "with --set eval_every=1) against agent-transitions and against wall-clock training "
+                       "minutes, one line per run and the mean per label, with reference policies scored on "
+                       "the same episodes. Prints the numbers it draws.")
+    s.add_argument("out", help="the figure to write (PNG)")
+    s.add_argument("runs", nargs="+", metavar="RUN",
+                   help="policy run directories, each optionally LABEL=RUN; runs with one label are seeds "
+                   "of one setting (default label: the run's input mode)")
+    s.add_argument("--references", default="rule",
+                   help="reference policies scored on the runs' evaluation episodes, comma-separated, or 'none' "
+                   "(default rule; plan, the lookahead planner, takes minutes)")
+    s.add_argument("--scenario", default="mixed", help="a training scenario, or mixed (default)")
+    s.add_argument("--title", default="", help="the figure's title")
+    s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="planner.KEY=VALUE",
+                   help="lookahead planner setting for the 'plan' reference, repeatable")
+    s.set_defaults(func=_cmd_curve)

@@ -69,14 +69,14 @@ from latentdrive.rl.runfolder import (
     stored_encoder,
     write_config,
 )
-from latentdrive.rollout import StepRecord, rollout
+from latentdrive.rollout import Policy, StepRecord, rollout
 from latentdrive.runlock import dir_lock
 from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
 from latentdrive.seeds import TRAINING_EVAL_OFFSET, train_reset_seed, validation_reset_seed
 from latentdrive.vec import make_vec
 
 __all__ = ["REPLAY_PATTERN", "EvalCallback", "Learner", "TrainResult", "learner_steps",
-           "make_store", "train_policy"]
+           "make_store", "periodic_evaluation", "train_policy"]
 
 #: Replay of segment k: ``replay-<k>.safetensors``. A new name per segment, so that a kill
 #: while saving never leaves a checkpoint beside a replay it does not belong to.
@@ -328,14 +328,19 @@ def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]
         yield rec
 
 
-def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> dict[str, Any]:
-    net.eval()
+def periodic_evaluation(cfg: PolicyTrainConfig, make_policy: Callable[[], Policy]) -> list[EpisodeOutcome]:
+    """``make_policy``'s outcomes on the episodes a run of ``cfg`` plays at each periodic
+    evaluation (its eval.csv rows), so that a reference policy can be scored on them too."""
     # Validation episodes when a search scores this run, an evaluation set otherwise.
     reset_seed = validation_reset_seed(0) if cfg.eval_seeds == "validation" else None
-    outcomes = evaluate_policy(greedy_policy(net, device), cfg.scenario_specs(), cfg.eval_episodes,
-                               envs=min(16, cfg.eval_episodes), backend=cfg.backend, seed_offset=TRAINING_EVAL_OFFSET,
-                               reset_seed=reset_seed, observation=cfg.observation.model_dump(),
-                               reward=cfg.reward.model_dump())
+    return evaluate_policy(make_policy, cfg.scenario_specs(), cfg.eval_episodes, envs=min(16, cfg.eval_episodes),
+                           backend=cfg.backend, seed_offset=TRAINING_EVAL_OFFSET, reset_seed=reset_seed,
+                           observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
+
+
+def _evaluate(cfg: PolicyTrainConfig, net: QNetwork, device: torch.device) -> dict[str, Any]:
+    net.eval()
+    outcomes = periodic_evaluation(cfg, greedy_policy(net, device))
     net.train()
     return policy_report(outcomes).as_dict()
 
