@@ -1,11 +1,12 @@
-"""How often does a policy run's greedy action match the lookahead planner's, on the planner's own states?
+"""How often does a policy run's greedy action match an expert's, on the expert's own states?
 
-Drives ``envs`` environments of one scenario with the planner (the run's
-``imitation.planner`` settings, the defaults for a DQN run) on validation episodes, and
-at every step asks the run's network what it would do. Prints the confusion matrix
-(rows: the planner's action, columns: the network's), the agreement and both action
-distributions. For an imitation run (``--learner dagger``) it measures how well the
-network fits its expert where the expert drives. Usage::
+Drives ``envs`` environments of one scenario with the expert on validation episodes, and
+at every step asks the run's network what it would do. The expert is an imitation run's
+own (``imitation.expert``: the planner with the run's ``imitation.planner`` settings, or
+the rule driver), so the script measures how well the network fits its expert where the
+expert drives; for a DQN run it is the planner at the default settings. Prints the
+confusion matrix (rows: the expert's action, columns: the network's), the agreement and
+both action distributions. Usage::
 
     python scripts/agreement.py RUN SCENARIO [--decisions 400] [--envs 8]
 """
@@ -18,7 +19,7 @@ import numpy as np
 import torch
 
 from latentdrive.actions import META_ACTIONS, N_ACTIONS
-from latentdrive.evaluate.planner import planner_policy
+from latentdrive.rl.imitate import expert_policy
 from latentdrive.rl.policy import FeatureCache, greedy_actions, load_policy_network
 from latentdrive.rollout import PolicyInput, rollout
 from latentdrive.scenarios import get_spec
@@ -39,10 +40,12 @@ def main() -> int:
                    reward=cfg.reward.model_dump())
     cache = FeatureCache(net, torch.device("cpu"))
     confusion = np.zeros((N_ACTIONS, N_ACTIONS), dtype=np.int64)
-    plan = planner_policy(cfg.imitation.planner, cfg.reward)
+    # A DQN run's imitation section holds the defaults: the planner.
+    plan = expert_policy(cfg.imitation, cfg.reward)
+    expert = cfg.imitation.expert
 
     def both(inp: PolicyInput) -> np.ndarray:
-        """The planner drives; the network is asked about the very same input."""
+        """The expert drives; the network is asked about the very same input."""
         planned = plan(inp)
         own = greedy_actions(net, cache, inp)
         np.add.at(confusion, (planned[inp.active], own[inp.active]), 1)
@@ -54,13 +57,13 @@ def main() -> int:
             break
     vec.close()
     total = confusion.sum()
-    print(f"{args.run} on {spec.name}: {total} decisions; rows: the planner's action, columns: the network's")
+    print(f"{args.run} on {spec.name}: {total} decisions; rows: the expert's ({expert}) action, columns: the network's")
     width = max(len(a) for a in META_ACTIONS) + 2
     print(" " * width + "".join(f"{a:>{width}}" for a in META_ACTIONS))
     for a, row in zip(META_ACTIONS, confusion, strict=True):
         print(f"{a:<{width}}" + "".join(f"{v:>{width}}" for v in row))
     print(f"agreement {np.trace(confusion) / total:.3f}")
-    print("planner  " + " ".join(f"{a} {v:.2f}" for a, v in zip(META_ACTIONS, confusion.sum(1) / total, strict=True)))
+    print(f"{expert:<9}" + " ".join(f"{a} {v:.2f}" for a, v in zip(META_ACTIONS, confusion.sum(1) / total, strict=True)))
     print("network  " + " ".join(f"{a} {v:.2f}" for a, v in zip(META_ACTIONS, confusion.sum(0) / total, strict=True)))
     return 0
 

@@ -7,11 +7,13 @@ seed, their mean over the evaluations all seeds reached) beside reference polici
 scored on the very episodes the runs' evaluations play (:func:`reference_rates`).
 
 Reading a curve: each point is one evaluation of ``eval_episodes`` episodes per scenario
-(at the defaults, 40 per scenario, 200 mixed: a 95% interval of about ±7 points on a
-rate near one half), so seeds and neighbouring points differ by chance as much as by
-learning; several training seeds tell a trend from noise. The minutes axis shows what a
-setting costs on the machine the run was trained on, evaluations included; compare two
-settings on it only when both ran on the same machine under the same load.
+(at 40 per scenario on the five-scenario mix, 200 episodes: a 95% interval of about ±7
+points on a rate near one half), so seeds and neighbouring points differ by chance as much
+as by learning; several training seeds tell a trend from noise. The minutes are the
+training time logged when the point's segment ended: the earlier evaluations are in it,
+that point's own evaluation and the run's set-up are not, and a resumed run's sessions
+add up. They show what a setting costs on the machine the run was trained on; compare two
+settings on them only when both ran on the same machine under the same load.
 """
 
 from __future__ import annotations
@@ -30,7 +32,7 @@ from numpy.typing import NDArray
 
 from latentdrive.config import ConfigError, validate
 from latentdrive.evaluate.planner import PlannerConfig
-from latentdrive.evaluate.policies import REFERENCE_POLICIES, reference_policy
+from latentdrive.evaluate.policies import SIMULATOR_POLICIES, reference_policy
 from latentdrive.evaluate.report import MIXED, policy_report
 from latentdrive.evaluate.stats import RateCI
 from latentdrive.rl.config import PolicyTrainConfig
@@ -65,27 +67,54 @@ def read_curve(run: str | Path, label: str | None = None, scenario: str = MIXED)
     root = Path(run)
     cfg = validate(PolicyTrainConfig, read_run_config(root)["train"])
     logs = read_logs(root)
-    rows = [r for r in logs[EVALS] if r["scenario"] == scenario]
+    rows = [r for r in logs[EVALS] if r.get("scenario") == scenario]
     if not rows:
-        known = sorted({r["scenario"] for r in logs[EVALS]})
+        known = sorted({r.get("scenario", "") for r in logs[EVALS]})
         if known:
             raise ConfigError(f"{root}: no evaluation of {scenario!r} in {EVALS} (it has {', '.join(known)})")
         raise ConfigError(f"{root}: no periodic evaluations in {EVALS} (train with --set eval_every=1)")
-    elapsed = {int(r["transitions"]): float(r["elapsed_s"]) for r in logs[METRICS]}
+    elapsed = {int(r["transitions"]): _number(root / METRICS, r, "elapsed_s") for r in logs[METRICS]}
     transitions = np.array([int(r["transitions"]) for r in rows], dtype=np.int64)
     missing = [t for t in transitions.tolist() if t not in elapsed]
     if missing:
         raise ConfigError(f"{root}: {METRICS} has no row at {missing[0]} agent-transitions, where {EVALS} has one")
+    episodes = {int(_number(root / EVALS, r, "episodes")) for r in rows}
+    if len(episodes) > 1:
+        raise ConfigError(f"{root / EVALS}: its evaluations of {scenario} differ in episodes ({sorted(episodes)})")
     return Curve(label or default_label(cfg), root, cfg, transitions,
                  np.array([elapsed[t] / 60.0 for t in transitions.tolist()]),
-                 np.array([float(r["failure_rate"]) for r in rows]), int(rows[0]["episodes"]))
+                 np.array([_number(root / EVALS, r, "failure_rate") for r in rows]), episodes.pop())
+
+
+def _number(path: Path, row: dict[str, str], column: str) -> float:
+    """``row[column]`` as a number; a missing or malformed value is an error naming the file."""
+    try:
+        return float(row[column])
+    except (KeyError, TypeError, ValueError):
+        raise ConfigError(f"{path}: no number in column {column!r} at {row.get('transitions')} "
+                          "agent-transitions (a damaged log)") from None
+
+
+#: Settings in which the seeds of one label may differ.
+_PER_SEED = ("seed", "steps", "device", "threads", "init_from")
 
 
 def group_curves(curves: Sequence[Curve]) -> dict[str, list[Curve]]:
-    """Curves by label, in the order the labels first appear."""
+    """Curves by label, in the order the labels first appear; the runs of one label must be
+    seeds of one setting (their configs equal but for the seed, the budget and where they ran)."""
     groups: dict[str, list[Curve]] = {}
     for c in curves:
-        groups.setdefault(c.label, []).append(c)
+        group = groups.setdefault(c.label, [])
+        if group:
+            mine, first = c.config.model_dump(mode="json"), group[0].config.model_dump(mode="json")
+            differ = sorted(k for k in mine if k not in _PER_SEED and mine[k] != first[k])
+            if differ:
+                raise ConfigError(f"{c.run} and {group[0].run} share the label {c.label!r} but differ in "
+                                  f"{', '.join(differ)}: a label groups the seeds of one setting; give each "
+                                  "setting its own (LABEL=RUN)")
+            if c.run in (g.run for g in group):
+                raise ConfigError(f"{c.run} is given twice under the label {c.label!r}")
+        group.append(c)
     return groups
 
 
@@ -111,9 +140,9 @@ def reference_rates(cfg: PolicyTrainConfig, names: Sequence[str], scenario: str 
                     planner: PlannerConfig | None = None) -> dict[str, RateCI]:
     """Failure rates of reference policies on the episodes of ``cfg``'s periodic evaluations."""
     out: dict[str, RateCI] = {}
-    for name in names:
-        if name not in REFERENCE_POLICIES:
-            raise ConfigError(f"unknown reference policy {name!r}: choose from {', '.join(REFERENCE_POLICIES)}")
+    for name in dict.fromkeys(names):
+        if name in SIMULATOR_POLICIES and cfg.backend != "fast":
+            raise ConfigError(f"reference {name!r} needs the fast backend; the runs were evaluated on {cfg.backend!r}")
         report = policy_report(periodic_evaluation(cfg, reference_policy(name, planner=planner, reward=cfg.reward)))
         summary = report.mixed if scenario == MIXED else report.scenarios[scenario]
         out[name] = summary.failure_rate
@@ -162,8 +191,10 @@ def write_curves(path: str | Path, curves: Sequence[Curve], references: dict[str
             if not math.isnan(r.lo):
                 ax.axhspan(100 * r.lo, 100 * r.hi, color=colour, alpha=0.08)
     axes[0].set_xlabel("agent-transitions")
-    axes[1].set_xlabel("wall-clock training minutes (evaluations included)")
-    axes[0].set_ylabel(f"held-out failure rate, % ({curves[0].episodes} episodes per point)")
+    axes[1].set_xlabel("wall-clock training minutes (earlier evaluations included)")
+    episodes = sorted({c.episodes for c in curves})
+    per_point = f"{episodes[0]} episodes per point" if len(episodes) == 1 else "episodes per point vary"
+    axes[0].set_ylabel(f"held-out failure rate, % ({per_point})")
     for ax in axes:
         ax.set_xlim(left=0)
         ax.set_ylim(0, 100)

@@ -210,6 +210,7 @@ def _cmd_curve(args: argparse.Namespace) -> int:
     from latentdrive.experiments.curve import (
         common_evaluation,
         curve_table,
+        group_curves,
         read_curve,
         reference_rates,
         write_curves,
@@ -220,19 +221,22 @@ def _cmd_curve(args: argparse.Namespace) -> int:
         raise ConfigError(f"{args.out}: cannot write a file there ({problem})")
     if not args.out.endswith(".png"):
         raise ConfigError(f"{args.out}: the figure is a PNG; name it *.png")
-    references = [] if args.references in ("", "none") else _split(args.references)
+    references = [] if args.references in ("", "none") else list(dict.fromkeys(_split(args.references)))
     unknown = [r for r in references if r not in REFERENCE_POLICIES]
     if unknown:
-        raise ConfigError(f"unknown reference policy {unknown[0]!r}: choose from {', '.join(REFERENCE_POLICIES)}")
+        raise ConfigError(f"unknown reference policy {unknown[0]!r}: choose one of {', '.join(REFERENCE_POLICIES)}")
     if args.overrides and "plan" not in references:
         raise ConfigError("--set planner.* given, but the planner ('plan') is not a reference")
     curves = [read_curve(run, label, args.scenario) for label, run in map(_labelled, args.runs)]
+    group_curves(curves)  # a label that mixes settings fails before any episode is played
     cfg = common_evaluation(curves) if references else curves[0].config
     if references:
         _say(f"scoring {', '.join(references)} on the runs' evaluation episodes ...")
     rates = reference_rates(cfg, references, args.scenario, planner_config_from_args(args.overrides))
-    print(f"held-out failure rate on {args.scenario} ({curves[0].episodes} episodes per evaluation); "
-          "failure % is the mean over the label's seeds at the evaluations all of them reached")
+    episodes = sorted({c.episodes for c in curves})
+    per_eval = f"{episodes[0]} episodes per evaluation" if len(episodes) == 1 else "episodes per evaluation vary"
+    print(f"held-out failure rate on {args.scenario} ({per_eval}); failure % is the mean over the label's "
+          "seeds at the evaluations all of them reached; minutes: training time when the segment ended")
     print(curve_table(curves, rates))
     print(f"wrote {write_curves(args.out, curves, rates, args.title)}")
     return 0
@@ -294,7 +298,8 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("out", help="the figure to write (PNG)")
     s.add_argument("runs", nargs="+", metavar="RUN",
                    help="policy run directories, each optionally LABEL=RUN; runs with one label are seeds "
-                   "of one setting (default label: the run's input mode)")
+                   "of one setting (default label: the run's input mode, or 'MODE, imitating EXPERT' for a "
+                   "DAgger run)")
     s.add_argument("--references", default="rule",
                    help="reference policies scored on the runs' evaluation episodes, comma-separated, or 'none' "
                    "(default rule; plan, the lookahead planner, takes minutes)")

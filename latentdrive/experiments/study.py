@@ -153,7 +153,9 @@ class ReproduceConfig(Config):
         if finetune:
             data = merge_overrides(data, self.policy.finetune)
         if imitation:
-            data = merge_overrides(data, {"learner": "dagger", "imitation.planner": self.evaluate.planner.model_dump()})
+            # The reference copies the study's own planner, whatever policy.train says.
+            data = merge_overrides(data, {"learner": "dagger", "imitation.expert": "plan",
+                                          "imitation.planner": self.evaluate.planner.model_dump()})
         if mode == "latent":
             data["bnn"] = "(the study's BNN)"  # a placeholder for validation; the step fills in the path
         try:

@@ -35,7 +35,7 @@ class PolicyTrainConfig(Config):
     init_from: str | None = Field(None, description="Policy run directory whose final weights initialize this run (fine-tuning, transfer learning).")
     observation: ObservationConfig = Field(default_factory=ObservationConfig, description="VelocityMap settings; must match the BNN's input.")
     reward: RewardConfig = Field(default_factory=RewardConfig, description="Per-agent reward weights while training (evaluation rates do not depend on them).")
-    learner: Literal["dqn", "dagger"] = Field("dqn", description="How the network learns: 'dqn', multi-agent double DQN on the reward (the paper's method); 'dagger', imitation of the lookahead planner's actions on the states the policy visits (the imitation reference: what a policy reading this observation can reach; fast backend only). See latentdrive.rl.imitate.")
+    learner: Literal["dqn", "dagger"] = Field("dqn", description="How the network learns: 'dqn', multi-agent double DQN on the reward (the paper's method); 'dagger', imitation of an expert's actions (the lookahead planner's, or the rule driver's: imitation.expert) on the states the policy visits (the imitation reference: what a policy reading this observation can reach; fast backend only). See latentdrive.rl.imitate.")
     dqn: DQNConfig = Field(default_factory=DQNConfig, description="Q-learning hyperparameters. Under learner 'dagger' only lr, batch_size, buffer_size (the labelled decisions kept), learning_starts, updates_per_transition and grad_clip apply.")
     imitation: ImitationConfig = Field(default_factory=ImitationConfig, description="DAgger settings (learner 'dagger' only).")
     vfan: VFANConfig = Field(default_factory=VFANConfig, description="VFAN body architecture.")
@@ -81,8 +81,8 @@ class PolicyTrainConfig(Config):
         if self.mode == "raw" and self.bnn:
             raise ValueError("mode 'raw' takes no BNN")
         if self.learner == "dagger" and self.backend != "fast":
-            raise ValueError("learner 'dagger' needs backend 'fast': its expert, the lookahead planner, branches "
-                             "the simulation state")
+            raise ValueError("learner 'dagger' needs backend 'fast': its experts read the fast backend's simulator "
+                             "(the lookahead planner branches its state; the rule driver reads its specs)")
         if self.learner == "dagger" and (self.dqn.n_step > 1 or self.dqn.prioritized):
             raise ValueError("learner 'dagger' fits labels, not returns: dqn.n_step must be 1 and dqn.prioritized "
                              "false")

@@ -53,11 +53,11 @@ __all__ = ["ExpertLabels", "ImitationConfig", "dagger_policy", "expert_policy", 
 class ImitationConfig(Config):
     """Settings of a DAgger run (``train-policy --learner dagger``)."""
 
-    expert: Literal["plan", "rule"] = Field("plan", description="Whose actions the network learns: 'plan', the lookahead planner (the imitation reference: it knows every driver's next move); 'rule', the rule driver of evaluate --policy rule, whose decision is a function of what the map shows (the leader's gap and the AV's own speed), so imitating it tests whether the network can read the map at all.")
-    beta_start: float = Field(1.0, ge=0.0, le=1.0, description="Probability that an AV plays the planner's action rather than the network's at the first labelled decision.")
+    expert: Literal["plan", "rule"] = Field("plan", description="Whose actions the network learns: 'plan', the lookahead planner (the imitation reference: it knows every driver's next move); 'rule', the rule driver of evaluate --policy rule, which decides from the gap to the vehicle ahead and the AV's own speed, both drawn in the map (up to sensor noise and the map's reach), so imitating it tests whether the network reads the map at all.")
+    beta_start: float = Field(1.0, ge=0.0, le=1.0, description="Probability that an AV plays the expert's action rather than the network's at the first labelled decision.")
     beta_end: float = Field(0.0, ge=0.0, le=1.0, description="That probability after the decay (0: the policy drives alone, every later label is on its own states).")
     beta_fraction: float = Field(0.5, gt=0.0, le=1.0, description="Share of the budget over which the probability falls linearly from beta_start to beta_end.")
-    class_weighted: bool = Field(True, description="Weight each label's cross-entropy by the inverse frequency of its action among the aggregated labels (the planner mostly plays Idle; unweighted, the rare lane changes and brakings hardly count).")
+    class_weighted: bool = Field(True, description="Weight each label's cross-entropy by the inverse frequency of its action among the aggregated labels (the experts mostly play Idle; unweighted, the rare lane changes and brakings hardly count).")
     planner: PlannerConfig = Field(default_factory=PlannerConfig, description="The lookahead planner's settings (expert 'plan').")
 
     @model_validator(mode="after")
@@ -67,12 +67,12 @@ class ImitationConfig(Config):
         return self
 
 
-def expert_policy(cfg: ImitationConfig, reward: RewardConfig, seed: int) -> Policy:
+def expert_policy(cfg: ImitationConfig, reward: RewardConfig) -> Policy:
     """The expert that labels the decisions: the planner (under the run's reward) or the rule driver."""
     if cfg.expert == "rule":
-        # No lane changes at random: the rule driver of the evaluation tables, whose every
-        # decision follows from the scene (``seed`` only feeds its unused random stream).
-        return reference_policy("rule", seed)()
+        # The rule driver of the evaluation tables: no random lane changes, so every decision
+        # follows from the scene and its random stream is never drawn from.
+        return reference_policy("rule")()
     return planner_policy(cfg.planner, reward)
 
 
@@ -82,7 +82,7 @@ def expert_share(cfg: ImitationConfig, transitions: int, budget: int) -> float:
 
 
 class ExpertLabels:
-    """The planner's actions ``(num_envs, n_av)`` at the latest step the policy acted on."""
+    """The expert's actions ``(num_envs, n_av)`` at the latest step the policy acted on."""
 
     def __init__(self) -> None:
         self.latest: NDArray[np.int64] | None = None

@@ -315,7 +315,7 @@ def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]
     if learner.imitating:
         labels = ExpertLabels()
         net = learner.net
-        expert = expert_policy(learner.cfg.imitation, learner.cfg.reward, seed)
+        expert = expert_policy(learner.cfg.imitation, learner.cfg.reward)
         policy = dagger_policy(expert, lambda inp: greedy_actions(net, cache, inp), learner.rng, learner.eps, labels)
     else:
         policy = epsilon_greedy(learner.net, cache, learner.rng, learner.eps)
@@ -381,20 +381,37 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
         # Everything a resumption reads is checked before anything is written.
         logs = read_logs(root) if resume else {}
         segment = learner.load(root) if resume else 0
+        elapsed_before = _elapsed_before(root, logs.get(METRICS, []), learner.transitions)
         write_config(root, cfg, net, enc)
         if not resume:
             say(f"{cfg.mode}: {net.parameter_count()} parameters")
         log = RunLog(root, {name: cols for name, (_, cols) in LOGS.items()}, "transitions",
                      learner.transitions if resume else None, logs)
         try:
-            return _run(cfg, root, net, learner, vec, segment, device, log, progress, on_eval)
+            return _run(cfg, root, net, learner, vec, segment, device, log, progress, on_eval, elapsed_before)
         finally:
             log.close()
             vec.close()
 
 
+def _elapsed_before(root: Path, metrics: list[dict[str, str]], transitions: int) -> float:
+    """Training seconds logged up to the checkpoint a resumption starts from (0 for a new run).
+
+    The clock restarts each session; elapsed_s continues from here, so it counts the whole
+    run's training time, less what a killed session did after its last checkpoint (the
+    resumption redoes it)."""
+    kept = [r for r in metrics if int(r["transitions"]) <= transitions]
+    text = kept[-1].get("elapsed_s", "") if kept else ""
+    try:
+        return float(text) if text else 0.0
+    except ValueError:
+        raise ConfigError(f"{root / METRICS}: elapsed_s {text!r} at {kept[-1]['transitions']} "
+                          "agent-transitions is not a number") from None
+
+
 def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, vec: Any, segment: int,
-         device: torch.device, log: RunLog, progress: bool, on_eval: EvalCallback | None) -> TrainResult:
+         device: torch.device, log: RunLog, progress: bool, on_eval: EvalCallback | None,
+         elapsed_before: float) -> TrainResult:
     from tqdm import tqdm
 
     bar = tqdm(total=cfg.steps, initial=min(learner.transitions, cfg.steps), unit="tr", disable=not progress,
@@ -423,7 +440,7 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
             "train_failure_rate": float(np.mean([o.failed for o in recent])) if recent else float("nan"),
             "train_crash_rate": float(np.mean([o.crashed for o in recent])) if recent else float("nan"),
             "transitions_per_s": (learner.transitions - start_transitions) / max(elapsed, 1e-9),
-            "elapsed_s": round(elapsed, 2),
+            "elapsed_s": round(elapsed_before + elapsed, 2),
         }
         log.write(METRICS, row, "train")
         final = learner.transitions >= cfg.steps

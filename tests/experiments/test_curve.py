@@ -15,6 +15,7 @@ from latentdrive.evaluate.report import policy_report
 from latentdrive.experiments.curve import (
     common_evaluation,
     curve_table,
+    group_curves,
     read_curve,
     reference_rates,
 )
@@ -101,13 +102,19 @@ def test_bad_input_is_one_line_and_writes_nothing(runs, tmp_path, capsys):
     shutil.copytree(runs[0], silent)
     (silent / "eval.csv").unlink()
     other = _train(tmp_path / "other", eval_episodes=2, steps=80)
+    damaged = tmp_path / "damaged"
+    shutil.copytree(runs[0], damaged)
+    text = (damaged / "metrics.csv").read_text().splitlines()
+    text[1] = ",".join(text[1].split(",")[:-1] + ["soon"])
+    (damaged / "metrics.csv").write_text("\n".join(text) + "\n")
     out = tmp_path / "c.png"
     cases = [
+        ([str(out), str(damaged)], "no number in column 'elapsed_s'"),
         ([str(out), str(silent)], "no periodic evaluations"),
         ([str(out), str(runs[0]), "--scenario", "merge"], "no evaluation of 'merge'"),
         ([str(out), str(runs[0]), "--references", "oracle"], "unknown reference policy 'oracle'"),
         ([str(tmp_path / "c.svg"), str(runs[0])], "the figure is a PNG"),
-        ([str(out), str(runs[0]), str(other)], "evaluated on different episodes"),
+        ([str(out), str(runs[0]), f"other={other}"], "evaluated on different episodes"),
         ([str(out), str(tmp_path / "nowhere")], "nowhere"),
         ([str(out), str(runs[0]), "--set", "planner.depth=3"], "the planner ('plan') is not a reference"),
     ]
@@ -117,7 +124,36 @@ def test_bad_input_is_one_line_and_writes_nothing(runs, tmp_path, capsys):
         assert len(err) == 1 and message in err[0], (argv, err)
     assert not out.exists() and not (tmp_path / "c.svg").exists()
     # Without references, runs evaluated on different episodes may share a figure.
-    assert main(["curve", str(out), str(runs[0]), str(other), "--references", "none"]) == 0
+    assert main(["curve", str(out), str(runs[0]), f"other={other}", "--references", "none"]) == 0
+
+
+def test_minutes_add_up_over_a_resumed_run(tmp_path):
+    cfg = PolicyTrainConfig.model_validate(merge_overrides(TINY, {"steps": 160}))
+    train_policy(cfg, tmp_path / "run", progress=False, say=lambda _line: None)
+    before = read_curve(tmp_path / "run")
+    train_policy(cfg.model_copy(update={"steps": 240}), tmp_path / "run", resume=True, progress=False,
+                 say=lambda _line: None)
+    after = read_curve(tmp_path / "run")
+    assert len(after.minutes) == 3
+    np.testing.assert_array_equal(after.minutes[:2], before.minutes)
+    assert after.minutes[2] > after.minutes[1]  # the second session's clock starts where the first stopped
+
+
+def test_a_label_groups_seeds_of_one_setting_only(runs, tmp_path, capsys):
+    other = _train(tmp_path / "lr", steps=80, dqn={"lr": 1e-3})
+    with pytest.raises(ConfigError, match=r"share the label 'raw' but differ in dqn"):
+        group_curves([read_curve(runs[0]), read_curve(other)])
+    assert main(["curve", str(tmp_path / "c.png"), str(runs[0]), str(other), "--references", "none"]) == 2
+    assert "LABEL=RUN" in capsys.readouterr().err
+    assert main(["curve", str(tmp_path / "c.png"), f"=x{runs[0]}"]) == 2
+    assert "an empty label" in capsys.readouterr().err
+    assert set(group_curves([read_curve(runs[0]), read_curve(other, "lr")])) == {"raw", "lr"}
+    assert not (tmp_path / "c.png").exists()
+
+
+def test_a_dagger_run_is_labelled_by_its_expert(tmp_path):
+    run = _train(tmp_path / "dagger", steps=80, learner="dagger", imitation={"expert": "rule"})
+    assert read_curve(run).label == "raw, imitating rule"
 
 
 def test_common_evaluation_names_the_run_that_differs(runs, tmp_path):

@@ -119,25 +119,26 @@ def test_with_the_expert_always_driving_the_labels_are_its_own_actions(tmp_path,
     assert len(set(stored.tolist())) > 1  # the expert does more than one thing
 
 
-@pytest.mark.parametrize("mode", ["raw", "latent-random"])
-def test_with_the_network_driving_the_labels_are_still_the_planners(tmp_path, tiny, monkeypatch, mode):
+@pytest.mark.parametrize(("mode", "expert"), [("raw", "plan"), ("latent-random", "plan"), ("raw", "rule")])
+def test_with_the_network_driving_the_labels_are_still_the_experts(tmp_path, tiny, monkeypatch, mode, expert):
     import latentdrive.rl.imitate as imitate_module
 
     logged: list[np.ndarray] = []
 
-    def logging_planner(cfg, reward):
-        plan = planner_policy(cfg, reward)
-
+    def logging(make):
         def policy(inp):
-            out = plan(inp)
+            out = make(inp)
             logged.append(out[inp.active])
             return out
 
         return policy
 
-    monkeypatch.setattr(imitate_module, "planner_policy", logging_planner)
+    if expert == "plan":
+        monkeypatch.setattr(imitate_module, "planner_policy", lambda cfg, reward: logging(planner_policy(cfg, reward)))
+    else:
+        monkeypatch.setattr(imitate_module, "reference_policy", lambda name: lambda: logging(reference_policy(name)()))
     cfg = tiny(mode=mode, learner="dagger", steps=80, segment=200, dqn={"learning_starts": 40},
-               imitation={**FAST_EXPERT, "beta_start": 0.0, "beta_end": 0.0})
+               imitation={**FAST_EXPERT, "expert": expert, "beta_start": 0.0, "beta_end": 0.0})
     train_policy(cfg, tmp_path / "run", **_quiet())
     stored = load_file(str(next((tmp_path / "run").glob("replay-*.safetensors"))))["replay/action"]
     np.testing.assert_array_equal(stored, np.concatenate(logged)[:len(stored)])
