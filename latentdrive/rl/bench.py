@@ -9,6 +9,15 @@ For each mode it runs the real training loop (:func:`latentdrive.rl.train.learne
   encoding observations (the frozen encoder in latent modes), and learning; the rest is
   replay writing, action selection and bookkeeping.
 
+What bounds the learner: each row also counts the floating-point operations of one update
+(``torch.utils.flop_counter`` over a real update step: forward, backward, the target's and
+the online network's passes on the next observations, the optimizer) and measures, right
+after, this machine's rate on a dense fp32 matrix product (1024², the same threads). The
+learner's achieved GFLOP/s against that rate says how far a faster implementation could
+go: at ``dqn.updates_per_transition`` updates per agent-transition, learning alone caps
+the loop at ``matmul rate / (FLOP per update · updates per transition)``
+agent-transitions/s even if the network ran at the matrix product's speed.
+
 Each mode runs in fp32 and, where the run's ``precision`` resolves to bf16 on the device
 (``--set precision=bf16``, or ``auto`` on a CPU with bf16 matrix units or on CUDA), in bf16
 too, one after the other in the same process, so their ratio is measured in one run.
@@ -26,6 +35,7 @@ from dataclasses import asdict, dataclass
 from typing import Any
 
 import torch
+from torch.utils.flop_counter import FlopCounterMode
 
 from latentdrive.config import merge_overrides, validate
 from latentdrive.rl.config import PolicyTrainConfig
@@ -34,7 +44,7 @@ from latentdrive.rl.train import Learner, learner_steps
 from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
 from latentdrive.vec import make_vec
 
-__all__ = ["TrainBenchRow", "bench_training", "format_train_bench"]
+__all__ = ["TrainBenchRow", "bench_training", "format_train_bench", "matmul_gflops"]
 
 #: The authors' public runs: ~4.5 h per 4,000 episodes, about 5 env steps/s per run (ANCHORS.md).
 AUTHORS_ENV_STEPS_PER_S = 5.0
@@ -59,6 +69,21 @@ class TrainBenchRow:
     transitions_per_s_max: float | None = None
     #: The compute precision of the forward passes: 'fp32' or 'bf16'.
     precision: str = "fp32"
+    #: Floating-point operations of one learner update (counted), and this machine's dense
+    #: fp32 matrix-product rate measured right after the mode (GFLOP/s).
+    gflop_per_update: float = float("nan")
+    matmul_gflops: float = float("nan")
+    updates_per_transition: float = float("nan")
+
+    @property
+    def learner_gflops(self) -> float:
+        """What the learner achieved: FLOP per update times updates/s, GFLOP/s."""
+        return self.gflop_per_update * self.updates_per_s
+
+    @property
+    def learning_cap(self) -> float:
+        """Agent-transitions/s that learning alone would allow at the matrix product's rate."""
+        return self.matmul_gflops / (self.gflop_per_update * self.updates_per_transition)
 
     @property
     def other(self) -> float:
@@ -95,10 +120,32 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> Train
         for _ in range(updates):
             learner.update_step()
         ups = updates / (time.perf_counter() - t0)
+        with FlopCounterMode(display=False) as counter:
+            learner.update_step()
         vec.close()
+        matmul = matmul_gflops(device)
     return TrainBenchRow(mode=cfg.mode, device=str(device), trainable_parameters=net.parameter_count()["trainable"],
                          precision="bf16" if learner.dtype == torch.bfloat16 else "fp32", updates_per_s=ups, transitions_per_s=done / wall, env_steps_per_s=vsteps * cfg.envs / wall,
-                         simulate=share["simulate"], render=share["render"], encode=share["encode"], learn=share["learn"])
+                         simulate=share["simulate"], render=share["render"], encode=share["encode"], learn=share["learn"],
+                         gflop_per_update=counter.get_total_flops() / 1e9, matmul_gflops=matmul,
+                         updates_per_transition=cfg.dqn.updates_per_transition)
+
+
+def matmul_gflops(device: torch.device, n: int = 1024, repeat: int = 10) -> float:
+    """This device's rate on an ``n × n`` fp32 matrix product (GFLOP/s, 2n³ per product),
+    at the current thread count: a practical ceiling for dense arithmetic here."""
+    a = torch.rand(n, n, device=device)
+    b = torch.rand(n, n, device=device)
+    for _ in range(2):
+        a @ b
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    t0 = time.perf_counter()
+    for _ in range(repeat):
+        a @ b
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return 2 * n**3 * repeat / (time.perf_counter() - t0) / 1e9
 
 
 def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transitions: int = 2000, updates: int = 50,
@@ -157,6 +204,11 @@ def format_train_bench(rows: list[TrainBenchRow], envs: int, threads: int) -> st
     if not any(r.precision != "fp32" for r in rows):
         lines.append("precision: fp32 only (the run's precision resolves to fp32 on this device; "
                      "--set precision=bf16 measures bf16 beside it)")
+    for r in rows:
+        lines.append(f"{r.mode} ({r.precision}): {r.gflop_per_update:.2f} GFLOP per update, {r.learner_gflops:.0f} GFLOP/s "
+                     f"achieved, {r.learner_gflops / r.matmul_gflops:.0%} of a 1024² fp32 matrix product here "
+                     f"({r.matmul_gflops:.0f} GFLOP/s); at {r.updates_per_transition:g} updates per agent-transition, "
+                     f"learning at that rate would cap the loop at {r.learning_cap:.0f} agent-transitions/s")
     for r in rows:
         if r.runs > 1:
             lines.append(f"{r.mode}: the median of {r.runs} runs; agent-transitions/s ranged "

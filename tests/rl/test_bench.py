@@ -1,5 +1,7 @@
 """`latentdrive bench --train`: the real training loop, timed per mode, repeatable."""
 
+import pytest
+
 from latentdrive.rl.bench import bench_training, format_train_bench
 
 SMALL = {"observation": {"height": 16, "width": 32, "frames": 2},
@@ -36,3 +38,15 @@ def test_a_bf16_run_is_measured_beside_fp32_in_the_same_run():
                                overrides={**SMALL, "precision": "fp32"})
     assert [r.precision for r in fp32_only] == ["fp32"]
     assert "fp32 only" in format_train_bench(fp32_only, envs=2, threads=1)
+
+
+def test_the_learners_arithmetic_is_counted_per_update_and_set_against_a_matrix_product():
+    small, = bench_training(["raw"], ["merge"], transitions=24, updates=2, envs=2, overrides=SMALL)
+    big = {**SMALL, "dqn": {**SMALL["dqn"], "batch_size": 8, "updates_per_transition": 0.25}}
+    double, = bench_training(["raw"], ["merge"], transitions=24, updates=2, envs=2, overrides=big)
+    # Every counted operation (convolutions, linear layers, on the batch) scales with it.
+    assert double.gflop_per_update == pytest.approx(2 * small.gflop_per_update, rel=0.01)
+    assert small.gflop_per_update > 0 and small.matmul_gflops > 0
+    assert double.learning_cap == pytest.approx(double.matmul_gflops / (double.gflop_per_update * 0.25))
+    text = format_train_bench([small], envs=2, threads=1)
+    assert f"{small.gflop_per_update:.2f} GFLOP per update" in text and "would cap the loop at" in text
