@@ -158,14 +158,16 @@ def _mean(group: Sequence[Curve]) -> tuple[NDArray[np.float64], NDArray[np.float
 
 def curve_table(curves: Sequence[Curve], references: dict[str, RateCI]) -> str:
     """The numbers the figure draws, one line per label and evaluation."""
-    lines = [f"{'label':<24}{'seeds':>6}{'eval':>6}{'agent-transitions':>19}{'minutes':>9}{'failure %':>11}  per seed"]
-    for label, group in group_curves(curves).items():
+    groups = group_curves(curves)
+    w = max(len(name) for name in ["label", *groups, *references]) + 2
+    lines = [f"{'label':<{w}}{'seeds':>6}{'eval':>6}{'agent-transitions':>19}{'minutes':>9}{'failure %':>11}  per seed"]
+    for label, group in groups.items():
         tr, mins, fail = _mean(group)
         for i in range(len(fail)):
             seeds = " ".join(f"{100 * c.failure[i]:.1f}" for c in group)
-            lines.append(f"{label:<24}{len(group):>6}{i + 1:>6}{tr[i]:>19,.0f}{mins[i]:>9.1f}{100 * fail[i]:>11.1f}  {seeds}")
+            lines.append(f"{label:<{w}}{len(group):>6}{i + 1:>6}{tr[i]:>19,.0f}{mins[i]:>9.1f}{100 * fail[i]:>11.1f}  {seeds}")
     for name, r in references.items():
-        lines.append(f"{name:<24}{'':>6}{'':>6}{'':>19}{'':>9}{100 * r.rate:>11.1f}  "
+        lines.append(f"{name:<{w}}{'':>6}{'':>6}{'':>19}{'':>9}{100 * r.rate:>11.1f}  "
                      f"[{100 * r.lo:.1f}, {100 * r.hi:.1f}] (95% Wilson, {r.n} episodes)")
     return "\n".join(lines)
 

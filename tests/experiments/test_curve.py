@@ -86,6 +86,7 @@ def test_the_table_averages_seeds_at_each_evaluation(runs):
     for i, line in enumerate(lines):
         mean = 100 * np.mean([c.failure[i] for c in curves])
         assert line.split()[:3] == ["dqn", "2", str(i + 1)]
+        assert line.index(" 2 ") == lines[0].index(" 2 ")  # columns line up
         assert float(line.split()[5]) == pytest.approx(mean, abs=0.051)
 
 
