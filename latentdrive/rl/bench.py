@@ -38,6 +38,7 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from latentdrive.config import merge_overrides, validate
+from latentdrive.models.vfan import LATENT_MODES
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import build_network, encoder_config
 from latentdrive.rl.train import Learner, learner_steps
@@ -74,6 +75,9 @@ class TrainBenchRow:
     gflop_per_update: float = float("nan")
     matmul_gflops: float = float("nan")
     updates_per_transition: float = float("nan")
+    #: Latent modes: the frozen encoder's FLOP per observation (GFLOP); it encodes about
+    #: one new observation per agent-transition. 0 in the other modes.
+    gflop_per_encode: float = 0.0
 
     @property
     def learner_gflops(self) -> float:
@@ -84,6 +88,13 @@ class TrainBenchRow:
     def learning_cap(self) -> float:
         """Agent-transitions/s that learning alone would allow at the matrix product's rate."""
         return self.matmul_gflops / (self.gflop_per_update * self.updates_per_transition)
+
+    @property
+    def arithmetic_cap(self) -> float:
+        """Agent-transitions/s that learning and encoding together would allow at the matrix
+        product's rate (one encoded observation per agent-transition)."""
+        per_transition = self.gflop_per_update * self.updates_per_transition + self.gflop_per_encode
+        return self.matmul_gflops / per_transition
 
     @property
     def other(self) -> float:
@@ -122,13 +133,19 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> Train
         ups = updates / (time.perf_counter() - t0)
         with FlopCounterMode(display=False) as counter:
             learner.update_step()
+        encode = 0.0
+        if cfg.mode in LATENT_MODES:
+            one = torch.zeros(8, *cfg.observation.shape, device=device)
+            with FlopCounterMode(display=False) as enc_counter:
+                net.features(one)
+            encode = enc_counter.get_total_flops() / 8 / 1e9
         vec.close()
         matmul = matmul_gflops(device)
     return TrainBenchRow(mode=cfg.mode, device=str(device), trainable_parameters=net.parameter_count()["trainable"],
                          precision="bf16" if learner.dtype == torch.bfloat16 else "fp32", updates_per_s=ups, transitions_per_s=done / wall, env_steps_per_s=vsteps * cfg.envs / wall,
                          simulate=share["simulate"], render=share["render"], encode=share["encode"], learn=share["learn"],
                          gflop_per_update=counter.get_total_flops() / 1e9, matmul_gflops=matmul,
-                         updates_per_transition=cfg.dqn.updates_per_transition)
+                         updates_per_transition=cfg.dqn.updates_per_transition, gflop_per_encode=encode)
 
 
 def matmul_gflops(device: torch.device, n: int = 1024, repeat: int = 10) -> float:
@@ -208,7 +225,9 @@ def format_train_bench(rows: list[TrainBenchRow], envs: int, threads: int) -> st
         lines.append(f"{r.mode} ({r.precision}): {r.gflop_per_update:.2f} GFLOP per update, {r.learner_gflops:.0f} GFLOP/s "
                      f"achieved, {r.learner_gflops / r.matmul_gflops:.0%} of a 1024² fp32 matrix product here "
                      f"({r.matmul_gflops:.0f} GFLOP/s); at {r.updates_per_transition:g} updates per agent-transition, "
-                     f"learning at that rate would cap the loop at {r.learning_cap:.0f} agent-transitions/s")
+                     f"learning at that rate would cap the loop at {r.learning_cap:.0f} agent-transitions/s"
+                     + (f"; with the encoder's {r.gflop_per_encode:.3f} GFLOP per observation, learning and "
+                        f"encoding at that rate would cap it at {r.arithmetic_cap:.0f}" if r.gflop_per_encode else ""))
     for r in rows:
         if r.runs > 1:
             lines.append(f"{r.mode}: the median of {r.runs} runs; agent-transitions/s ranged "

@@ -106,7 +106,7 @@ def test_bad_input_is_one_line_and_writes_nothing(runs, tmp_path, capsys):
     damaged = tmp_path / "damaged"
     shutil.copytree(runs[0], damaged)
     text = (damaged / "metrics.csv").read_text().splitlines()
-    text[1] = ",".join(text[1].split(",")[:-1] + ["soon"])
+    text[1] = ",".join([*text[1].split(",")[:-1], "soon"])
     (damaged / "metrics.csv").write_text("\n".join(text) + "\n")
     out = tmp_path / "c.png"
     cases = [

@@ -11,6 +11,7 @@ SMALL = {"observation": {"height": 16, "width": 32, "frames": 2},
 def test_a_repeated_bench_reports_its_median_run_and_range():
     rows = bench_training(["latent"], ["merge"], transitions=24, updates=2, envs=2, overrides=SMALL, repeat=3)
     (row,) = rows
+    assert row.gflop_per_encode > 0 and row.arithmetic_cap < row.learning_cap  # latent modes encode
     assert row.mode == "latent (untrained encoder)" and row.runs == 3
     lo, hi = row.transitions_per_s_min, row.transitions_per_s_max
     assert lo is not None and hi is not None and lo <= row.transitions_per_s <= hi
@@ -24,6 +25,7 @@ def test_a_repeated_bench_reports_its_median_run_and_range():
 def test_a_single_run_prints_no_range():
     (row,) = bench_training(["raw"], ["merge"], transitions=24, updates=2, envs=2, overrides=SMALL)
     assert row.runs == 1 and row.encode < 0.05  # raw mode stores observations as they are
+    assert row.gflop_per_encode == 0 and row.arithmetic_cap == row.learning_cap
     assert "median" not in format_train_bench([row], envs=2, threads=1)
 
 
