@@ -38,8 +38,16 @@ def main() -> int:
                     help="best.safetensors (the weights the run keeps) or checkpoint.safetensors (the latest)")
     args = ap.parse_args()
     path = args.run / f"{args.weights}.safetensors"
+    if not (args.run / "split.json").exists() or not path.exists():
+        raise SystemExit(f"{args.run}: not a BNN run folder (needs split.json and {path.name})")
     _, state = read_checkpoint(path)
+    if not isinstance(state.get("config"), dict) or "train" not in state["config"]:
+        raise SystemExit(f"{path}: not a BNN checkpoint (no training config)")
     cfg = validate(BNNTrainConfig, state["config"]["train"])
+    if cfg.loss != "bce" or cfg.foreground_weight <= 1 or cfg.foreground_weight_final is not None:
+        raise SystemExit(f"{path}: the shift undoes a constant vehicle weight w > 1 under loss 'bce'; this run "
+                         f"trained loss {cfg.loss!r}, weight {cfg.foreground_weight:g} to "
+                         f"{cfg.foreground_weight_final}")
     model = BottleneckNetwork(validate(BottleneckConfig, state["config"]["model"]))
     info = load_checkpoint(path, model)
     model.eval().requires_grad_(False)

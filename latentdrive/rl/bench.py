@@ -9,14 +9,17 @@ For each mode it runs the real training loop (:func:`latentdrive.rl.train.learne
   encoding observations (the frozen encoder in latent modes), and learning; the rest is
   replay writing, action selection and bookkeeping.
 
-What bounds the learner: each row also counts the floating-point operations of one update
-(``torch.utils.flop_counter`` over a real update step: forward, backward, the target's and
-the online network's passes on the next observations, the optimizer) and measures, right
-after, this machine's rate on a dense fp32 matrix product (1024², the same threads). The
-learner's achieved GFLOP/s against that rate says how far a faster implementation could
-go: at ``dqn.updates_per_transition`` updates per agent-transition, learning alone caps
-the loop at ``matmul rate / (FLOP per update · updates per transition)``
-agent-transitions/s even if the network ran at the matrix product's speed.
+What bounds the learner: each row also counts the convolution and matrix-product
+operations of one update (``torch.utils.flop_counter`` over a real update step: forward
+and backward on the batch, the target's and the online network's passes on the next
+observations; elementwise work such as the optimizer's counts nothing there) and, in
+latent modes, of the frozen encoder per observation, and measures, right after, this
+machine's rate on a dense fp32 matrix product (1024², the same threads). The learner's
+achieved GFLOP/s against that rate says how far a faster implementation could go: at
+``dqn.updates_per_transition`` updates per agent-transition, the counted arithmetic
+bounds the loop at ``matmul rate / (FLOP per update · updates per transition + FLOP per
+encoded observation)`` agent-transitions/s, an upper bound (the acting pass, elementwise
+work and the extra encodes at episode ends are left out).
 
 Each mode runs in fp32 and, where the run's ``precision`` resolves to bf16 on the device
 (``--set precision=bf16``, or ``auto`` on a CPU with bf16 matrix units or on CUDA), in bf16
@@ -92,7 +95,8 @@ class TrainBenchRow:
     @property
     def arithmetic_cap(self) -> float:
         """Agent-transitions/s that learning and encoding together would allow at the matrix
-        product's rate (one encoded observation per agent-transition)."""
+        product's rate: an upper bound, counting one encoded observation per agent-transition
+        (episode ends encode a few more)."""
         per_transition = self.gflop_per_update * self.updates_per_transition + self.gflop_per_encode
         return self.matmul_gflops / per_transition
 
@@ -222,12 +226,12 @@ def format_train_bench(rows: list[TrainBenchRow], envs: int, threads: int) -> st
         lines.append("precision: fp32 only (the run's precision resolves to fp32 on this device; "
                      "--set precision=bf16 measures bf16 beside it)")
     for r in rows:
-        lines.append(f"{r.mode} ({r.precision}): {r.gflop_per_update:.2f} GFLOP per update, {r.learner_gflops:.0f} GFLOP/s "
+        lines.append(f"{r.mode} ({r.precision}): {r.gflop_per_update:.3g} GFLOP per update, {r.learner_gflops:.0f} GFLOP/s "
                      f"achieved, {r.learner_gflops / r.matmul_gflops:.0%} of a 1024² fp32 matrix product here "
                      f"({r.matmul_gflops:.0f} GFLOP/s); at {r.updates_per_transition:g} updates per agent-transition, "
-                     f"learning at that rate would cap the loop at {r.learning_cap:.0f} agent-transitions/s"
+                     f"learning at that rate would allow at most {r.learning_cap:.0f} agent-transitions/s"
                      + (f"; with the encoder's {r.gflop_per_encode:.3f} GFLOP per observation, learning and "
-                        f"encoding at that rate would cap it at {r.arithmetic_cap:.0f}" if r.gflop_per_encode else ""))
+                        f"encoding at that rate at most {r.arithmetic_cap:.0f}" if r.gflop_per_encode else ""))
     for r in rows:
         if r.runs > 1:
             lines.append(f"{r.mode}: the median of {r.runs} runs; agent-transitions/s ranged "

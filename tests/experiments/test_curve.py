@@ -80,14 +80,17 @@ def test_references_play_the_episodes_of_the_runs_evaluations(runs):
 
 
 def test_the_table_averages_seeds_at_each_evaluation(runs):
-    curves = [read_curve(r, "dqn") for r in runs]
-    lines = curve_table(curves, {}).splitlines()[1:]
+    label = "a setting with a label longer than the columns"
+    curves = [read_curve(r, label) for r in runs]
+    header, *lines = curve_table(curves, {}).splitlines()
     assert len(lines) == 3
     for i, line in enumerate(lines):
         mean = 100 * np.mean([c.failure[i] for c in curves])
-        assert line.split()[:3] == ["dqn", "2", str(i + 1)]
-        assert line.index(" 2 ") == lines[0].index(" 2 ")  # columns line up
-        assert float(line.split()[5]) == pytest.approx(mean, abs=0.051)
+        rest = line[len(label):].split()
+        assert line.startswith(label) and rest[:2] == ["2", str(i + 1)]
+        # The seeds column lines up with its header, whatever the label's length.
+        assert line.index(" 2 ") + 1 == header.index("seeds") + len("seeds") - 1
+        assert float(rest[4]) == pytest.approx(mean, abs=0.051)
 
 
 def test_the_command_draws_and_prints(runs, tmp_path, capsys):

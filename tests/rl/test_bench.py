@@ -1,6 +1,7 @@
 """`latentdrive bench --train`: the real training loop, timed per mode, repeatable."""
 
 import pytest
+import torch
 
 from latentdrive.rl.bench import bench_training, format_train_bench
 
@@ -51,4 +52,22 @@ def test_the_learners_arithmetic_is_counted_per_update_and_set_against_a_matrix_
     assert small.gflop_per_update > 0 and small.matmul_gflops > 0
     assert double.learning_cap == pytest.approx(double.matmul_gflops / (double.gflop_per_update * 0.25))
     text = format_train_bench([small], envs=2, threads=1)
-    assert f"{small.gflop_per_update:.2f} GFLOP per update" in text and "would cap the loop at" in text
+    assert f"{small.gflop_per_update:.3g} GFLOP per update" in text and "would allow at most" in text
+
+
+def test_an_update_counts_the_batchs_backward_and_both_passes_on_the_next_observations():
+    """Forward on the batch, its backward (about twice the forward), the target's and the
+    online network's passes on the next observations: at least 4 forwards of the batch."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    from latentdrive.config import merge_overrides, validate
+    from latentdrive.rl.config import PolicyTrainConfig
+    from latentdrive.rl.policy import build_network, encoder_config
+
+    (row,) = bench_training(["raw"], ["merge"], transitions=24, updates=2, envs=2, overrides=SMALL)
+    cfg = validate(PolicyTrainConfig, merge_overrides({"mode": "raw", "scenarios": ["merge"]}, SMALL))
+    net = build_network(cfg, encoder_config(cfg))
+    with FlopCounterMode(display=False) as counter:
+        net(torch.zeros(SMALL["dqn"]["batch_size"], *cfg.observation.shape))
+    forward = counter.get_total_flops() / 1e9
+    assert 4 * forward <= row.gflop_per_update <= 6 * forward
