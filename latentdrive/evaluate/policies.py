@@ -13,7 +13,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,7 +25,7 @@ from latentdrive.evaluate.planner import PlannerConfig, planner_policy
 from latentdrive.rollout import Policy, PolicyInput
 from latentdrive.scenarios import RewardConfig, get_spec
 
-__all__ = ["REFERENCE_POLICIES", "SIMULATOR_POLICIES", "reference_policy"]
+__all__ = ["REFERENCE_POLICIES", "SIMULATOR_POLICIES", "check_references", "reference_policy"]
 
 REFERENCE_POLICIES: tuple[str, ...] = ("random", "idle", "stop", "rule", "plan")
 #: The references that need the fast backend (they branch its state).
@@ -74,6 +74,12 @@ def reference_policy(name: str, seed: int = 0, *, planner: PlannerConfig | None 
         "rule": lambda: _rule(seed),
         "plan": lambda: planner_policy(planner, reward),
     }
-    if name not in makers:
-        raise ConfigError(f"unknown reference policy {name!r}: choose one of {', '.join(REFERENCE_POLICIES)}")
+    check_references([name])
     return makers[name]
+
+
+def check_references(names: Iterable[str]) -> None:
+    """A one-line error for the first name that is not a reference policy."""
+    for name in names:
+        if name not in REFERENCE_POLICIES:
+            raise ConfigError(f"unknown reference policy {name!r}: choose one of {', '.join(REFERENCE_POLICIES)}")

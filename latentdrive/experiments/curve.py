@@ -19,7 +19,7 @@ settings on them only when both ran on the same machine under the same load.
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -156,9 +156,8 @@ def _mean(group: Sequence[Curve]) -> tuple[NDArray[np.float64], NDArray[np.float
             np.mean([c.failure[:k] for c in group], axis=0))
 
 
-def curve_table(curves: Sequence[Curve], references: dict[str, RateCI]) -> str:
-    """The numbers the figure draws, one line per label and evaluation."""
-    groups = group_curves(curves)
+def curve_table(groups: Mapping[str, Sequence[Curve]], references: dict[str, RateCI]) -> str:
+    """The numbers the figure draws, one line per label (of :func:`group_curves`) and evaluation."""
     w = max(len(name) for name in ["label", *groups, *references]) + 2
     lines = [f"{'label':<{w}}{'seeds':>6}{'eval':>6}{'agent-transitions':>19}{'minutes':>9}{'failure %':>11}  per seed"]
     for label, group in groups.items():
@@ -172,13 +171,13 @@ def curve_table(curves: Sequence[Curve], references: dict[str, RateCI]) -> str:
     return "\n".join(lines)
 
 
-def write_curves(path: str | Path, curves: Sequence[Curve], references: dict[str, RateCI],
+def write_curves(path: str | Path, groups: Mapping[str, Sequence[Curve]], references: dict[str, RateCI],
                  title: str = "") -> Path:
     """Failure rate against agent-transitions (left) and wall-clock minutes (right): thin lines
     per seed, a thick line for their mean, dashed lines with their 95% band for references."""
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
     colours = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    for i, (label, group) in enumerate(group_curves(curves).items()):
+    for i, (label, group) in enumerate(groups.items()):
         colour = colours[i % len(colours)]
         tr, mins, fail = _mean(group)
         for ax, xs, mean_x in ((axes[0], [c.transitions for c in group], tr), (axes[1], [c.minutes for c in group], mins)):
@@ -187,13 +186,14 @@ def write_curves(path: str | Path, curves: Sequence[Curve], references: dict[str
             ax.plot(mean_x, 100 * fail, color=colour, lw=2.2, marker="o", ms=4,
                     label=f"{label} (mean of {len(group)} seed{'s' if len(group) > 1 else ''})")
     for j, (name, r) in enumerate(references.items()):
-        colour = colours[(len(group_curves(curves)) + j) % len(colours)]
+        colour = colours[(len(groups) + j) % len(colours)]
         for ax in axes:
             ax.axhline(100 * r.rate, color=colour, ls="--", lw=1.4, label=f"{name} {100 * r.rate:.1f}%")
             if not math.isnan(r.lo):
                 ax.axhspan(100 * r.lo, 100 * r.hi, color=colour, alpha=0.08)
     axes[0].set_xlabel("agent-transitions")
     axes[1].set_xlabel("wall-clock training minutes (earlier evaluations included)")
+    curves = [c for group in groups.values() for c in group]
     episodes = sorted({c.episodes for c in curves})
     per_point = f"{episodes[0]} episodes per point" if len(episodes) == 1 else "episodes per point vary"
     axes[0].set_ylabel(f"held-out failure rate, % ({per_point})")

@@ -70,6 +70,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from latentdrive.evaluate.policies import (
         REFERENCE_POLICIES,
         SIMULATOR_POLICIES,
+        check_references,
     )
     from latentdrive.evaluate.report import format_compare, format_table
     from latentdrive.experiments.policy import (
@@ -110,9 +111,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         if moved:
             _say(f"warning: {run} was trained on {', '.join(moved)} as specified then; the spec has changed "
                  "since, and the evaluation uses today's")
-    for name in references:
-        if name not in REFERENCE_POLICIES:
-            raise ConfigError(f"unknown reference policy {name!r}: choose from {', '.join(REFERENCE_POLICIES)}")
+    check_references(references)
     if not runs and not references:
         raise ConfigError("nothing to evaluate: give a RUN or --policy")
     if args.scenarios:
@@ -206,7 +205,7 @@ def _labelled(arg: str) -> tuple[str | None, str]:
 
 def _cmd_curve(args: argparse.Namespace) -> int:
     from latentdrive.evaluate.planner import planner_config_from_args
-    from latentdrive.evaluate.policies import REFERENCE_POLICIES
+    from latentdrive.evaluate.policies import check_references
     from latentdrive.experiments.curve import (
         common_evaluation,
         curve_table,
@@ -222,13 +221,11 @@ def _cmd_curve(args: argparse.Namespace) -> int:
     if not args.out.endswith(".png"):
         raise ConfigError(f"{args.out}: the figure is a PNG; name it *.png")
     references = [] if args.references in ("", "none") else list(dict.fromkeys(_split(args.references)))
-    unknown = [r for r in references if r not in REFERENCE_POLICIES]
-    if unknown:
-        raise ConfigError(f"unknown reference policy {unknown[0]!r}: choose one of {', '.join(REFERENCE_POLICIES)}")
+    check_references(references)
     if args.overrides and "plan" not in references:
         raise ConfigError("--set planner.* given, but the planner ('plan') is not a reference")
     curves = [read_curve(run, label, args.scenario) for label, run in map(_labelled, args.runs)]
-    group_curves(curves)  # a label that mixes settings fails before any episode is played
+    groups = group_curves(curves)  # a label that mixes settings fails before any episode is played
     cfg = common_evaluation(curves) if references else curves[0].config
     if references:
         _say(f"scoring {', '.join(references)} on the runs' evaluation episodes ...")
@@ -237,8 +234,8 @@ def _cmd_curve(args: argparse.Namespace) -> int:
     per_eval = f"{episodes[0]} episodes per evaluation" if len(episodes) == 1 else "episodes per evaluation vary"
     print(f"held-out failure rate on {args.scenario} ({per_eval}); failure % is the mean over the label's "
           "seeds at the evaluations all of them reached; minutes: training time when the segment ended")
-    print(curve_table(curves, rates))
-    print(f"wrote {write_curves(args.out, curves, rates, args.title)}")
+    print(curve_table(groups, rates))
+    print(f"wrote {write_curves(args.out, groups, rates, args.title)}")
     return 0
 
 

@@ -82,7 +82,7 @@ def test_references_play_the_episodes_of_the_runs_evaluations(runs):
 def test_the_table_averages_seeds_at_each_evaluation(runs):
     label = "a setting with a label longer than the columns"
     curves = [read_curve(r, label) for r in runs]
-    header, *lines = curve_table(curves, {}).splitlines()
+    header, *lines = curve_table(group_curves(curves), {}).splitlines()
     assert len(lines) == 3
     for i, line in enumerate(lines):
         mean = 100 * np.mean([c.failure[i] for c in curves])
