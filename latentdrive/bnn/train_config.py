@@ -33,6 +33,14 @@ class BNNTrainConfig(Config):
         description="Epochs of training on batches holding every scenario, with the λ-weighted "
         "scenario-distance term (phase 'mixed'). The paper trains 100 epochs in all.",
     )
+    epoch_steps: int = Field(
+        0, ge=0, le=1 << 30,
+        description="Batches per epoch at most (0: one pass over the training episodes). "
+        "Every epoch reads the training shards in a new random order, so successive capped "
+        "epochs see different parts of the training set: on a large dataset this sets how "
+        "often validation runs and how many steps the schedules count without shrinking "
+        "the data.",
+    )
     batch_size: int = Field(
         64, ge=1, le=1 << 20,
         description="Observations per batch, samples. The batch functions decide the batches; "

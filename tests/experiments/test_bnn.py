@@ -108,6 +108,21 @@ def test_train_bnn_epochs_is_the_total_whatever_the_pretraining(tiny_study, tmp_
     assert (train["pretrain_epochs"], train["mixed_epochs"]) == (1, 2)
 
 
+def test_epoch_steps_caps_each_epoch(tiny_study, tmp_path, capsys):
+    out, _, _ = tiny_study
+    run = tmp_path / "run"
+    args = ["train-bnn", str(out / "dataset"), str(run), "--latent-dim", "4", "--epochs", "3",
+            "--channels", "4", "--set", "batch_size=4", "--set", "pretrain_epochs=1",
+            "--set", "epoch_steps=2", "--set", "val_every=1"]
+    assert main(args) == 0
+    text = capsys.readouterr().out
+    epochs = [line for line in (run / "metrics.csv").read_text().splitlines() if line.startswith("epoch,")]
+    # Two steps per epoch, three epochs: the epoch rows' step column reads 2, 4, 6.
+    assert [int(line.split(",")[3]) for line in epochs] == [2, 4, 6]
+    # Each epoch line shows the held-out objective beside the plain error.
+    assert text.count("(objective ") == 3
+
+
 def test_train_bnn_model_overrides_reach_the_architecture(tiny_study, tmp_path, capsys):
     out, _, _ = tiny_study
     run = tmp_path / "run"
