@@ -61,3 +61,10 @@ def test_bad_speedups_are_one_line(tiny_study: Path, capsys: pytest.CaptureFixtu
         assert main(["estimate", str(tiny_study), "--preset", "tiny", "--speedup", bad]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 4 and all("--speedup" in line for line in err)
+
+
+def test_capped_bnn_epochs_are_refused(tiny_study: Path) -> None:
+    # Epochs are scaled by the ratio of the datasets, which a capped epoch does not follow.
+    capped = load_reproduce_config("tiny", {"bnn": {"train": {"epoch_steps": 5}}})
+    with pytest.raises(ConfigError, match=r"planned study caps BNN epochs \(bnn.train.epoch_steps=5\)"):
+        estimate_from(tiny_study, capped, [1])
