@@ -200,11 +200,11 @@ def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]
             raise ConfigError(f"--speedup {name}: the factor must be a positive finite number, got {factor:g}")
         for c in hit:
             rates[c] /= factor
-    for which, c in (("measured study", m_cfg), ("planned study", cfg)):
-        if c.bnn.train.epoch_steps:
+    for which, study in (("measured study", m_cfg), ("planned study", cfg)):
+        if study.bnn.train.epoch_steps:
             # BNN epochs are scaled by the ratio of the datasets; a capped epoch does not grow
             # with its dataset, so that scaling would be wrong.
-            raise ConfigError(f"the {which} caps BNN epochs (bnn.train.epoch_steps={c.bnn.train.epoch_steps}); "
+            raise ConfigError(f"the {which} caps BNN epochs (bnn.train.epoch_steps={study.bnn.train.epoch_steps}); "
                               f"estimates scale BNN epochs with the dataset and cannot handle capped ones")
     scale = (cfg.bnn.collect.episodes * len(cfg.scenarios)) / (m_cfg.bnn.collect.episodes * len(m_cfg.scenarios))
     graph = build_graph(cfg)
