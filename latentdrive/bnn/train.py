@@ -22,6 +22,8 @@ same weights as an uninterrupted run.
 
 from __future__ import annotations
 
+import functools
+import itertools
 import json
 import math
 import time
@@ -94,7 +96,8 @@ def train_bnn(
     ``val_batches_fn()`` yields the validation batches (``None`` skips validation).
     ``steps_per_epoch``, the number of batches an epoch yields, sizes the per-step
     schedules (learning rate, vehicle weight); when None it is counted by iterating
-    ``train_batches_fn(0)`` once.
+    ``train_batches_fn(0)`` once. With ``cfg.epoch_steps`` an epoch stops after that many
+    batches, and ``steps_per_epoch`` is capped to match.
 
     After each validation the weights are written to ``run_dir/best.safetensors`` when
     they score best so far (:func:`validation_score`); without validation, after every
@@ -113,6 +116,10 @@ def train_bnn(
     schedule trains no further and returns the saved metrics.
     """
     run = Path(run_dir)
+    if cfg.epoch_steps:
+        train_batches_fn = functools.partial(_capped, train_batches_fn, cfg.epoch_steps)
+        if steps_per_epoch is not None:
+            steps_per_epoch = min(steps_per_epoch, cfg.epoch_steps)
     # One process per run directory: a second one would resume from, and overwrite, the
     # first one's checkpoints.
     with dir_lock(run, "train-bnn"):
@@ -122,6 +129,11 @@ def train_bnn(
             raise ValueError("train_batches_fn(0) yielded no batches")
         return _train(cfg, model_cfg, train_batches_fn, val_batches_fn, run, resume, progress,
                       steps_per_epoch)
+
+
+def _capped(batches_fn: Callable[[int], Iterable[BNNBatch]], steps: int, epoch: int) -> Iterable[BNNBatch]:
+    """The first ``steps`` batches of ``batches_fn(epoch)``."""
+    return itertools.islice(batches_fn(epoch), steps)
 
 
 def validation_score(metrics: dict[str, float]) -> float:

@@ -15,7 +15,6 @@ Every step skips what is already done, so an interrupted study continues where i
 
 from __future__ import annotations
 
-import itertools
 import json
 import math
 from collections.abc import Callable, Iterator, Mapping
@@ -143,8 +142,7 @@ def train_on_dataset(
     mixed = ds.batches_fn(train_cfg.batch_size, train_ids, seed=train_cfg.seed, mixed=True)
 
     def train_fn(epoch: int) -> Iterator[BNNBatch]:
-        batches = (plain if train_cfg.phase(epoch) == "pretrain" else mixed)(epoch)
-        return itertools.islice(batches, train_cfg.epoch_steps) if train_cfg.epoch_steps else batches
+        return (plain if train_cfg.phase(epoch) == "pretrain" else mixed)(epoch)
 
     def val_fn() -> Iterator[BNNBatch]:
         return ds.batches(train_cfg.batch_size, val_ids, seed=train_cfg.seed, epoch=0, mixed=False)
@@ -161,8 +159,6 @@ def train_on_dataset(
         atomic_write_text(run / SPLIT, json.dumps(split) + "\n")
         # Every batch but the last is full (ShardDataset.batches), mixed or not.
         steps = math.ceil(ds.num_samples(train_ids) / train_cfg.batch_size)
-        if train_cfg.epoch_steps:
-            steps = min(steps, train_cfg.epoch_steps)
         return train_bnn(train_cfg, model_cfg, train_fn, val_fn, run, resume=resume, progress=progress,
                          steps_per_epoch=steps)
 

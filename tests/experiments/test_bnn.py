@@ -6,6 +6,7 @@ from helpers import held_by_another_process
 
 from latentdrive.cli import main
 from latentdrive.config import ConfigError, LatentDriveError
+from latentdrive.data.dataset import ShardDataset
 from latentdrive.experiments.bnn import (
     format_report,
     load_study_config,
@@ -117,6 +118,9 @@ def test_epoch_steps_caps_each_epoch(tiny_study, tmp_path, capsys):
     assert main(args) == 0
     text = capsys.readouterr().out
     epochs = [line for line in (run / "metrics.csv").read_text().splitlines() if line.startswith("epoch,")]
+    # Uncapped, an epoch of this dataset would be longer than two batches of 4.
+    split = json.loads((run / "split.json").read_text())
+    assert ShardDataset(out / "dataset").num_samples(np.asarray(split["train_episodes"])) > 2 * 4
     # Two steps per epoch, three epochs: the epoch rows' step column reads 2, 4, 6.
     assert [int(line.split(",")[3]) for line in epochs] == [2, 4, 6]
     # Each epoch line shows the held-out objective beside the plain error.
