@@ -27,7 +27,7 @@ import itertools
 import json
 import math
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -97,7 +97,8 @@ def train_bnn(
     ``steps_per_epoch``, the number of batches an epoch yields, sizes the per-step
     schedules (learning rate, vehicle weight); when None it is counted by iterating
     ``train_batches_fn(0)`` once. With ``cfg.epoch_steps`` an epoch stops after that many
-    batches, and ``steps_per_epoch`` is capped to match.
+    batches, and ``steps_per_epoch`` is capped to match. With ``cfg.val_samples`` each
+    validation scores that many samples of ``val_batches_fn()`` at most.
 
     After each validation the weights are written to ``run_dir/best.safetensors`` when
     they score best so far (:func:`validation_score`); without validation, after every
@@ -116,6 +117,8 @@ def train_bnn(
     schedule trains no further and returns the saved metrics.
     """
     run = Path(run_dir)
+    if cfg.val_samples and val_batches_fn is not None:
+        val_batches_fn = functools.partial(_first_samples, val_batches_fn, cfg.val_samples)
     if cfg.epoch_steps:
         train_batches_fn = functools.partial(_capped, train_batches_fn, cfg.epoch_steps)
         if steps_per_epoch is not None:
@@ -134,6 +137,17 @@ def train_bnn(
 def _capped(batches_fn: Callable[[int], Iterable[BNNBatch]], steps: int, epoch: int) -> Iterable[BNNBatch]:
     """The first ``steps`` batches of ``batches_fn(epoch)``."""
     return itertools.islice(batches_fn(epoch), steps)
+
+
+def _first_samples(batches_fn: Callable[[], Iterable[BNNBatch]], samples: int) -> Iterator[BNNBatch]:
+    """The batches of ``batches_fn()`` up to ``samples`` samples in all (the last one cut)."""
+    left = samples
+    for b in batches_fn():
+        if left <= 0:
+            return
+        n = int(b.noisy.shape[0])
+        yield b if n <= left else BNNBatch(b.noisy[:left], b.clean[:left], b.scenario[:left])
+        left -= n
 
 
 def validation_score(metrics: dict[str, float]) -> float:

@@ -114,6 +114,14 @@ class BNNTrainConfig(Config):
         description="Validate every this many epochs, and after the last one. Validation "
         "scores every vehicle of the held-out maps, a noticeable share of a short epoch.",
     )
+    val_samples: int = Field(
+        0, ge=0, le=1 << 30,
+        description="Held-out samples scored at each validation during training, the first "
+        "ones the validation batches yield (0: all of them). Scoring every vehicle costs "
+        "about as much as training on the same samples; a few thousand samples measure "
+        "recall and precision within about a point. Studies score their final weights on "
+        "every held-out sample regardless.",
+    )
     precision: Precision = Field(
         "auto",
         description="'auto' (bf16 autocast on CUDA and on CPUs with AMX-BF16 or AVX512-BF16, "

@@ -530,3 +530,24 @@ def test_validation_score_is_the_f1_of_recall_and_precision() -> None:
     assert train_mod.validation_score({"val_vehicle_recall": 0.9, "val_vehicle_precision": 0.6}) == pytest.approx(0.72)
     assert train_mod.validation_score({"val_vehicle_recall": float("nan"), "val_vehicle_precision": 0.6}) == -math.inf
     assert train_mod.validation_score({"val_vehicle_recall": 0.0, "val_vehicle_precision": 0.0}) == -math.inf
+
+
+@pytest.mark.parametrize(("val_samples", "scored"), [(0, 96), (70, 70), (500, 96)])
+def test_val_samples_caps_the_samples_each_validation_scores(
+    data: dict[str, np.ndarray], tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+    val_samples: int, scored: int,
+) -> None:
+    seen: list[int] = []
+    real = train_mod.evaluate_bnn
+
+    def counting(model, batches, *args, **kwargs):  # type: ignore[no-untyped-def]
+        batches = list(batches)
+        seen.append(sum(int(b.noisy.shape[0]) for b in batches))
+        return real(model, batches, *args, **kwargs)
+
+    monkeypatch.setattr(train_mod, "evaluate_bnn", counting)
+    train_fn, val_fn = _fns(data, 32, 16, stratify_from=1)
+    # The validation batches are 48 samples each, 96 in all: a cap of 70 cuts the second.
+    cfg = _small_cfg(pretrain_epochs=1, mixed_epochs=1, lambda_distance=0.0, val_every=1, val_samples=val_samples)
+    train_bnn(cfg, MODEL, train_fn, val_fn, tmp_path / "run", progress=False)
+    assert seen == [scored, scored]
