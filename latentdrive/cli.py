@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from collections.abc import Sequence
 from typing import NoReturn
 
@@ -241,11 +242,14 @@ def _cmd_bnn_study(args: argparse.Namespace) -> int:
     from latentdrive.experiments.bnn import load_study_config, run_bnn_study
 
     cfg = load_study_config(args.preset, parse_override_args(args.overrides))
-    report = run_bnn_study(cfg, args.out, progress=not args.quiet)
+    t0 = time.perf_counter()
+    report = run_bnn_study(cfg, args.out, progress=not args.quiet, workers=args.workers)
     from latentdrive.experiments.bnn import format_report
 
     print(format_report(report))
     print(f"report: {args.out}/report.md, figures: {args.out}/figures/")
+    print(f"wall time of this command: {(time.perf_counter() - t0) / 60:.1f} min "
+          f"(steps finished by an earlier, interrupted run are not counted)")
     return 0
 
 
@@ -344,7 +348,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     s = sub.add_parser("bnn-study", help="dataset, BNNs of latent size 16/32/64 and λ>0, evaluation, figures")
     s.add_argument("out", help="study directory (rerun the same command to resume)")
-    s.add_argument("--preset", default="small", help="tiny, small (default; a few hours on a 2-core CPU), paper, or a .yaml file")
+    s.add_argument("--preset", default="small", help="tiny, small (default), paper, or a .yaml file")
+    s.add_argument("--workers", type=positive_int, default=1,
+                   help="BNNs trained at once, each in its own process (default 1)")
     s.add_argument("-q", "--quiet", action="store_true")
     _add_set(s, "study override, repeatable (--set collect.episodes=20 --set train.mixed_epochs=4)")
     s.set_defaults(func=_cmd_bnn_study)

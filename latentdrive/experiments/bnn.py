@@ -17,7 +17,10 @@ from __future__ import annotations
 
 import json
 import math
+import multiprocessing as mp
+import os
 from collections.abc import Callable, Iterator, Mapping
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
@@ -258,12 +261,17 @@ def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.nda
 
 
 def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
-                  say: Callable[[str], None] = print) -> dict[str, Any]:
+                  say: Callable[[str], None] = print, workers: int = 1) -> dict[str, Any]:
     """Run (or resume) the whole study into ``out``; returns the report it writes.
 
-    What the study would refuse (another config's dataset in ``out``, runs that cannot be
-    resumed with ``cfg``) is checked before anything is written.
+    ``workers`` > 1 trains that many BNNs at once, each in its own process; a run whose
+    config leaves ``num_threads`` at 0 then gets the machine's cores shared among the
+    workers (thread counts can change results in the last bits; the runs' configs record
+    them). What the study would refuse (another config's dataset in ``out``, runs that
+    cannot be resumed with ``cfg``) is checked before anything is written.
     """
+    if workers < 1:
+        raise ConfigError(f"workers must be at least 1, got {workers}")
     out = Path(out)
     _check_study_target(cfg, out)
     out.mkdir(parents=True, exist_ok=True)
@@ -271,14 +279,43 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
     say(f"[1/4] dataset -> {out / 'dataset'}")
     collect(cfg.collect, out / "dataset", progress=progress)
     runs = study_runs(cfg)
-    for i, (name, d, lam) in enumerate(runs):
-        say(f"[2/4] training {name} ({i + 1}/{len(runs)}) -> {out / 'runs' / name}")
-        train_on_dataset(out / "dataset", out / "runs" / name, cfg.train.replace(lambda_distance=lam), d,
-                         channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=progress)
+    if workers == 1:
+        for i, (name, d, lam) in enumerate(runs):
+            say(f"[2/4] training {name} ({i + 1}/{len(runs)}) -> {out / 'runs' / name}")
+            train_on_dataset(out / "dataset", out / "runs" / name, cfg.train.replace(lambda_distance=lam), d,
+                             channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=progress)
+    else:
+        _train_in_parallel(cfg, out, runs, workers, say)
 
     say("[3/4] evaluating on held-out episodes")
     return report_bnn_runs(cfg, out / "dataset", {name: (out / "runs" / name, d, lam) for name, d, lam in runs}, out,
                            say=say)
+
+
+def _train_in_parallel(cfg: BNNStudyConfig, out: Path, runs: list[tuple[str, int, float]], workers: int,
+                       say: Callable[[str], None]) -> None:
+    threads = cfg.train.num_threads or max(1, (os.cpu_count() or 1) // workers)
+    say(f"[2/4] training {len(runs)} BNNs, {min(workers, len(runs))} at a time ({threads} thread(s) each) "
+        f"-> {out / 'runs'}")
+    # spawn, not fork: a forked child would inherit torch's thread pools and locks.
+    with ProcessPoolExecutor(max_workers=min(workers, len(runs)), mp_context=mp.get_context("spawn")) as pool:
+        futures = {
+            pool.submit(train_on_dataset, out / "dataset", out / "runs" / name,
+                        cfg.train.replace(lambda_distance=lam, num_threads=threads), d,
+                        channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=False): name
+            for name, d, lam in runs
+        }
+        try:
+            for done, fut in enumerate(as_completed(futures), 1):
+                m = fut.result()
+                say(f"[2/4] {futures[fut]} done ({done}/{len(runs)}): held-out recall "
+                    f"{_fmt(_finite_or_none(m.get('val_vehicle_recall', math.nan)), '.3f')}, precision "
+                    f"{_fmt(_finite_or_none(m.get('val_vehicle_precision', math.nan)), '.3f')}")
+        except BaseException:
+            # The runs already training finish their epoch's checkpoint or stop with the
+            # interrupt; those not started are dropped. Rerunning the study resumes them all.
+            pool.shutdown(wait=True, cancel_futures=True)
+            raise
 
 
 def report_bnn_runs(cfg: BNNStudyConfig, dataset: Path, runs: Mapping[str, tuple[Path, int, float]], out: Path,

@@ -540,7 +540,7 @@ def test_val_samples_caps_the_samples_each_validation_scores(
     seen: list[int] = []
     real = train_mod.evaluate_bnn
 
-    def counting(model, batches, *args, **kwargs):  # type: ignore[no-untyped-def]
+    def counting(model, batches, *args, **kwargs):
         batches = list(batches)
         seen.append(sum(int(b.noisy.shape[0]) for b in batches))
         return real(model, batches, *args, **kwargs)

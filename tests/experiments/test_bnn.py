@@ -1,4 +1,5 @@
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -238,3 +239,19 @@ def test_a_study_of_a_spec_file_reads_its_config_from_the_dataset_s_stored_specs
     shutil.rmtree(copy / "dataset")
     with pytest.raises(ConfigError, match=r"gone\.yaml: no such config file"):
         read_study_config(copy)
+
+
+def test_runs_trained_in_parallel_match_runs_trained_one_after_another(tiny_study, tmp_path):
+    out, _, _ = tiny_study
+    cfg = load_study_config("tiny", {"train": {"num_threads": 1}})
+    reports: dict[int, dict] = {}
+    said: list[str] = []
+    for workers in (1, 2):
+        folder = tmp_path / f"w{workers}"
+        shutil.copytree(out / "dataset", folder / "dataset")
+        reports[workers] = run_bnn_study(cfg, folder, progress=False, say=said.append, workers=workers)
+    assert reports[1]["runs"] == reports[2]["runs"]
+    assert "[2/4] training 3 BNNs, 2 at a time (1 thread(s) each) -> " + str(tmp_path / "w2" / "runs") in said
+    assert sum(line.startswith("[2/4] d4 done (") for line in said) == 1
+    with pytest.raises(ConfigError, match="workers must be at least 1"):
+        run_bnn_study(cfg, tmp_path / "w0", progress=False, workers=0)
