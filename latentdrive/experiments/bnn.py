@@ -82,11 +82,25 @@ class BNNStudyConfig(Config):
     collect: CollectConfig = Field(default_factory=lambda: CollectConfig.model_validate({}), description="The dataset.")
     train: BNNTrainConfig = Field(default_factory=lambda: BNNTrainConfig.model_validate({}), description="Training of every run (lambda_distance is set per run).")
     channels: tuple[int, ...] = Field((16, 32), min_length=1, max_length=6, description="Encoder channel widths of every run's BNN.")
+    model: dict[str, Any] = Field(
+        default_factory=dict,
+        description="Further BottleneckConfig fields of every run's BNN (latent_dim, channels and input_shape "
+        "come from the study); {head_hidden: 0, latent_norm: false} is the paper's structure.")
     latent_dims: list[int] = Field(default_factory=lambda: [16, 32, 64], min_length=1, description="Latent sizes d compared at λ = 0 (the paper's 16, 32, 64).")
     lambdas: list[float] = Field(default_factory=lambda: [0.01], description="λ > 0 values trained at the largest latent size.")
     val_fraction: float = Field(0.15, gt=0.0, lt=1.0, description="Share of each scenario's episodes held out for evaluation.")
     eval_samples: int = Field(300, ge=10, le=100_000, description="Held-out samples per scenario used for the distance matrices and figures.")
     raw_pool: int = Field(4, ge=1, le=64, description="Average-pooling factor over H and W of the raw-input baseline space.")
+
+    @field_validator("model")
+    @classmethod
+    def _model_fields(cls, v: dict[str, Any]) -> dict[str, Any]:
+        taken = sorted(set(v) & {"latent_dim", "channels", "input_shape"})
+        if taken:
+            raise ValueError(f"{', '.join(taken)}: set by the study (latent_dims, channels, the observation), not by model")
+        # Checked against a placeholder shape; a run's own shape comes from its dataset.
+        validate(BottleneckConfig, {**v, "input_shape": (4, 32, 64)}, prefix="model.")
+        return v
 
     @field_validator("lambdas")
     @classmethod
@@ -283,7 +297,8 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
         for i, (name, d, lam) in enumerate(runs):
             say(f"[2/4] training {name} ({i + 1}/{len(runs)}) -> {out / 'runs' / name}")
             train_on_dataset(out / "dataset", out / "runs" / name, cfg.train.replace(lambda_distance=lam), d,
-                             channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=progress)
+                             channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=progress,
+                             model=cfg.model)
     else:
         _train_in_parallel(cfg, out, runs, workers, say)
 
@@ -302,7 +317,8 @@ def _train_in_parallel(cfg: BNNStudyConfig, out: Path, runs: list[tuple[str, int
         futures = {
             pool.submit(train_on_dataset, out / "dataset", out / "runs" / name,
                         cfg.train.replace(lambda_distance=lam, num_threads=threads), d,
-                        channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=False): name
+                        channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=False,
+                        model=cfg.model): name
             for name, d, lam in runs
         }
         try:
@@ -372,7 +388,7 @@ def _check_study_target(cfg: BNNStudyConfig, out: Path) -> None:
         pass
     for name, d, lam in study_runs(cfg):
         run = out / "runs" / name
-        check_run_dir(run, cfg.train.replace(lambda_distance=lam), _model_config(d, cfg.channels, None, sample_shape),
+        check_run_dir(run, cfg.train.replace(lambda_distance=lam), _model_config(d, cfg.channels, cfg.model, sample_shape),
                       resume=True)
         if split is not None:
             _check_split(run, split)

@@ -59,7 +59,8 @@ def run_dataset(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: P
 def run_bnn(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:
     metrics = train_on_dataset(inputs["dataset"] / "data", folder / RUN, validate(BNNTrainConfig, config["train"]),
                                int(config["latent_dim"]), channels=tuple(config["channels"]),
-                               val_fraction=float(config["val_fraction"]), resume=True, progress=False)
+                               val_fraction=float(config["val_fraction"]), resume=True, progress=False,
+                               model=config.get("model"))
     return {k: float(v) for k, v in metrics.items()}
 
 

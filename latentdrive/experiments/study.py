@@ -201,12 +201,15 @@ def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] |
     runs = study_runs(bnn_study)
     epochs = cfg.bnn.train.pretrain_epochs + cfg.bnn.train.mixed_epochs
     for name, d, lam in runs:
-        steps.append(Step(f"bnn/{name}", "bnn", {"train": cfg.bnn.train.replace(lambda_distance=lam).model_dump(mode="json"),
-                                                  "latent_dim": d, "channels": list(cfg.bnn.channels),
-                                                  "val_fraction": cfg.bnn.val_fraction},
-                          {"dataset": "dataset"}, cost=epochs * samples / 80))
+        bnn_cfg = {"train": cfg.bnn.train.replace(lambda_distance=lam).model_dump(mode="json"),
+                   "latent_dim": d, "channels": list(cfg.bnn.channels), "val_fraction": cfg.bnn.val_fraction}
+        if cfg.bnn.model:
+            # Only when set, so that studies from before the field keep their step keys.
+            bnn_cfg["model"] = dict(cfg.bnn.model)
+        steps.append(Step(f"bnn/{name}", "bnn", bnn_cfg, {"dataset": "dataset"}, cost=epochs * samples / 80))
     steps.append(Step("bnn/report", "bnn-report",
-                      {"study": bnn_study.model_dump(mode="json"), "runs": {n: [d, lam] for n, d, lam in runs}},
+                      {"study": bnn_study.model_dump(mode="json", exclude=None if cfg.bnn.model else {"model"}),
+                       "runs": {n: [d, lam] for n, d, lam in runs}},
                       {"dataset": "dataset", **{f"run:{n}": f"bnn/{n}" for n, _, _ in runs}}, cost=30))
     policy_bnn = f"bnn/{run_name(cfg.policy_bnn)}"
     # latent-random and end-to-end take only the architecture of the policy BNN (not its

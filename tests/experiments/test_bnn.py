@@ -243,7 +243,8 @@ def test_a_study_of_a_spec_file_reads_its_config_from_the_dataset_s_stored_specs
 
 def test_runs_trained_in_parallel_match_runs_trained_one_after_another(tiny_study, tmp_path):
     out, _, _ = tiny_study
-    cfg = load_study_config("tiny", {"train": {"num_threads": 1}})
+    # The paper's structure (the study's model section) in both, to check that it reaches the runs too.
+    cfg = load_study_config("tiny", {"train": {"num_threads": 1}, "model": {"head_hidden": 0, "latent_norm": False}})
     reports: dict[int, dict] = {}
     said: list[str] = []
     for workers in (1, 2):
@@ -251,6 +252,9 @@ def test_runs_trained_in_parallel_match_runs_trained_one_after_another(tiny_stud
         shutil.copytree(out / "dataset", folder / "dataset")
         reports[workers] = run_bnn_study(cfg, folder, progress=False, say=said.append, workers=workers)
     assert reports[1]["runs"] == reports[2]["runs"]
+    for workers in (1, 2):
+        model = json.loads((tmp_path / f"w{workers}" / "runs" / "d8" / "config.json").read_text())["model"]
+        assert (model["head_hidden"], model["latent_norm"]) == (0, False)
     assert "[2/4] training 3 BNNs, 2 at a time (1 thread(s) each) -> " + str(tmp_path / "w2" / "runs") in said
     assert sum(line.startswith("[2/4] d4 done (") for line in said) == 1
     with pytest.raises(ConfigError, match="workers must be at least 1"):

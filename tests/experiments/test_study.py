@@ -61,3 +61,25 @@ def test_more_seeds_add_policies_and_leave_the_first_seed_untouched() -> None:
 def test_inconsistent_studies_are_refused_with_the_field_named(override: dict, needle: str) -> None:
     with pytest.raises(ConfigError, match=needle):
         build_graph(load_reproduce_config("tiny", override))
+
+
+def test_a_bnn_model_section_reaches_the_bnn_steps_and_leaves_other_keys_alone() -> None:
+    plain = build_graph(load_reproduce_config("tiny"))
+    # Without a model section the steps' configs are as before the field existed, so
+    # finished studies keep their keys.
+    assert "model" not in plain.steps["bnn/d8"].config
+    assert "model" not in plain.steps["bnn/report"].config["study"]
+    paper = build_graph(load_reproduce_config("tiny", {"bnn": {"model": {"head_hidden": 0, "latent_norm": False}}}))
+    assert paper.steps["bnn/d8"].config["model"] == {"head_hidden": 0, "latent_norm": False}
+    assert paper.keys["dataset"] == plain.keys["dataset"]
+    assert paper.keys["bnn/d8"] != plain.keys["bnn/d8"]
+    assert paper.keys["policy/raw/mixed/s0"] == plain.keys["policy/raw/mixed/s0"]
+    assert paper.keys["policy/latent/mixed/s0"] != plain.keys["policy/latent/mixed/s0"]
+
+
+@pytest.mark.parametrize(("model", "names"), [({"latent_dim": 8}, "latent_dim: set by the study"),
+                                               ({"head_hiden": 0}, "head_hiden"),
+                                               ({"head_hidden": -1}, "head_hidden")])
+def test_a_bad_bnn_model_section_is_refused(model: dict[str, object], names: str) -> None:
+    with pytest.raises(ConfigError, match=names):
+        load_reproduce_config("tiny", {"bnn": {"model": model}})
