@@ -19,7 +19,7 @@ from typing import Literal
 import torch
 
 __all__ = ["PRECISIONS", "Precision", "autocast", "check_device", "cpu_has_bf16", "resolve_device",
-           "resolve_precision", "torch_settings"]
+           "resolve_precision", "torch_settings", "usable_cpus"]
 
 Precision = Literal["auto", "fp32", "bf16"]
 #: The values of every config's ``precision`` field.
@@ -98,3 +98,9 @@ def torch_settings(enabled: bool, device: torch.device, num_threads: int) -> Ite
         torch.use_deterministic_algorithms(prev, warn_only=prev_warn)
         torch.backends.cudnn.benchmark = prev_bench
         torch.set_num_threads(prev_threads)
+
+
+def usable_cpus() -> int:
+    """CPUs this process may run on (its affinity mask, which a container or ``taskset``
+    can narrow below the machine's count)."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)

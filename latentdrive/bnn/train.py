@@ -143,11 +143,11 @@ def _first_samples(batches_fn: Callable[[], Iterable[BNNBatch]], samples: int) -
     """The batches of ``batches_fn()`` up to ``samples`` samples in all (the last one cut)."""
     left = samples
     for b in batches_fn():
-        if left <= 0:
-            return
         n = int(b.noisy.shape[0])
         yield b if n <= left else BNNBatch(b.noisy[:left], b.clean[:left], b.scenario[:left])
         left -= n
+        if left <= 0:  # before the next batch is read and decoded
+            return
 
 
 def validation_score(metrics: dict[str, float]) -> float:

@@ -17,17 +17,14 @@ from __future__ import annotations
 
 import json
 import math
-import multiprocessing as mp
-import os
 from collections.abc import Callable, Iterator, Mapping
-from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
 import torch.nn.functional as F
-from pydantic import Field, field_validator
+from pydantic import Field, ValidationError, field_validator
 
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import read_checkpoint
@@ -41,7 +38,7 @@ from latentdrive.bnn.train import (
     train_bnn,
 )
 from latentdrive.bnn.vehicles import VehicleCounts
-from latentdrive.config import Config, ConfigError, load_preset, validate
+from latentdrive.config import Config, ConfigError, describe_validation_error, load_preset, validate
 from latentdrive.data.collect import (
     CollectConfig,
     check_collect_target,
@@ -54,9 +51,11 @@ from latentdrive.data.shards import DatasetError
 from latentdrive.evaluate.stats import json_values
 from latentdrive.experiments.bnn_report import epoch_rows, read_report
 from latentdrive.experiments.heldout import HeldOut, held_out
+from latentdrive.experiments.processes import Job, run_processes
 from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
 from latentdrive.runlock import dir_lock
+from latentdrive.runtime import usable_cpus
 
 __all__ = [
     "BNNStudyConfig",
@@ -98,9 +97,14 @@ class BNNStudyConfig(Config):
         taken = sorted(set(v) & {"latent_dim", "channels", "input_shape"})
         if taken:
             raise ValueError(f"{', '.join(taken)}: set by the study (latent_dims, channels, the observation), not by model")
-        # Checked against a placeholder shape; a run's own shape comes from its dataset.
-        validate(BottleneckConfig, {**v, "input_shape": (4, 32, 64)}, prefix="model.")
-        return v
+        try:
+            # Checked against a placeholder shape; a run's own shape comes from its dataset.
+            checked = BottleneckConfig.model_validate({**v, "input_shape": (4, 32, 64)})
+        except ValidationError as exc:
+            raise ValueError(describe_validation_error(exc)) from None
+        # The validated values, so that "0" and 0 make the same run (and the same step key).
+        dumped = checked.model_dump(mode="json")
+        return {k: dumped[k] for k in v}
 
     @field_validator("lambdas")
     @classmethod
@@ -162,7 +166,10 @@ def train_on_dataset(
         return (plain if train_cfg.phase(epoch) == "pretrain" else mixed)(epoch)
 
     def val_fn() -> Iterator[BNNBatch]:
-        return ds.batches(train_cfg.batch_size, val_ids, seed=train_cfg.seed, epoch=0, mixed=False)
+        # A capped validation reads the first samples: batches holding every scenario keep
+        # its scenario shares those of the held-out set.
+        return ds.batches(train_cfg.batch_size, val_ids, seed=train_cfg.seed, epoch=0,
+                          mixed=bool(train_cfg.val_samples))
 
     run = Path(run_dir)
     split = {"dataset": str(Path(dataset_dir).resolve()), "val_fraction": val_fraction,
@@ -309,29 +316,27 @@ def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
 
 def _train_in_parallel(cfg: BNNStudyConfig, out: Path, runs: list[tuple[str, int, float]], workers: int,
                        say: Callable[[str], None]) -> None:
-    threads = cfg.train.num_threads or max(1, (os.cpu_count() or 1) // workers)
-    say(f"[2/4] training {len(runs)} BNNs, {min(workers, len(runs))} at a time ({threads} thread(s) each) "
-        f"-> {out / 'runs'}")
-    # spawn, not fork: a forked child would inherit torch's thread pools and locks.
-    with ProcessPoolExecutor(max_workers=min(workers, len(runs)), mp_context=mp.get_context("spawn")) as pool:
-        futures = {
-            pool.submit(train_on_dataset, out / "dataset", out / "runs" / name,
-                        cfg.train.replace(lambda_distance=lam, num_threads=threads), d,
-                        channels=cfg.channels, val_fraction=cfg.val_fraction, resume=True, progress=False,
-                        model=cfg.model): name
-            for name, d, lam in runs
-        }
-        try:
-            for done, fut in enumerate(as_completed(futures), 1):
-                m = fut.result()
-                say(f"[2/4] {futures[fut]} done ({done}/{len(runs)}): held-out recall "
-                    f"{_fmt(_finite_or_none(m.get('val_vehicle_recall', math.nan)), '.3f')}, precision "
-                    f"{_fmt(_finite_or_none(m.get('val_vehicle_precision', math.nan)), '.3f')}")
-        except BaseException:
-            # The runs already training finish their epoch's checkpoint or stop with the
-            # interrupt; those not started are dropped. Rerunning the study resumes them all.
-            pool.shutdown(wait=True, cancel_futures=True)
-            raise
+    slots = min(workers, len(runs))
+    threads = cfg.train.num_threads or max(1, usable_cpus() // slots)
+    say(f"[2/4] training {len(runs)} BNNs, {slots} at a time ({threads} thread(s) each) -> {out / 'runs'}")
+    jobs: dict[str, Job] = {
+        name: (train_on_dataset,
+               (out / "dataset", out / "runs" / name, cfg.train.replace(lambda_distance=lam, num_threads=threads), d),
+               {"channels": cfg.channels, "val_fraction": cfg.val_fraction, "resume": True, "progress": False,
+                "model": cfg.model})
+        for name, d, lam in runs
+    }
+    done: list[str] = []
+
+    def report(name: str, m: dict[str, float]) -> None:
+        done.append(name)
+        say(f"[2/4] {name} done ({len(done)}/{len(runs)}): its last validation's recall "
+            f"{_fmt(_finite_or_none(m.get('val_vehicle_recall', math.nan)), '.3f')}, precision "
+            f"{_fmt(_finite_or_none(m.get('val_vehicle_precision', math.nan)), '.3f')}")
+
+    # A failure or an interrupt stops every run at once; each continues from its last
+    # epoch's checkpoint when the study is run again.
+    run_processes(jobs, slots, on_done=report)
 
 
 def report_bnn_runs(cfg: BNNStudyConfig, dataset: Path, runs: Mapping[str, tuple[Path, int, float]], out: Path,

@@ -24,6 +24,7 @@ from latentdrive.experiments.study import ReproduceConfig, build_graph
 from latentdrive.experiments.study_report import write_report
 from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
 from latentdrive.runlock import dir_lock
+from latentdrive.runtime import usable_cpus
 from latentdrive.scenarios import ScenarioSpec, resolve_specs
 
 __all__ = ["estimate_from", "read_study", "rebuild_report", "run_study"]
@@ -41,14 +42,8 @@ def _environment() -> dict[str, Any]:
 
     return {"latentdrive": __version__, "python": platform.python_version(), "torch": torch.__version__,
             "numpy": np.__version__,
-            "machine": platform.machine(), "cpus": _cpus(), "cuda": torch.cuda.is_available(),
+            "machine": platform.machine(), "cpus": usable_cpus(), "cuda": torch.cuda.is_available(),
             "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None}
-
-
-def _cpus() -> int:
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset: str = "", progress: bool = True,

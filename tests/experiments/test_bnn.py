@@ -211,6 +211,7 @@ def test_a_trained_run_is_not_resumed_on_another_split(tiny_study, tmp_path, cap
     ({"val_fraction": 0.5}, "another episode split"),
     ({"train": {"lr": 0.5}}, "other training settings"),
     ({"collect": {"seed": 7}}, "holds a dataset of config"),
+    ({"model": {"head_hidden": 0}}, r"another model config \(head_hidden \(256 → 0\)\)"),
 ])
 def test_a_study_rerun_that_would_be_refused_writes_nothing(tiny_study, change, needle):
     out, cfg, _ = tiny_study
@@ -259,3 +260,4 @@ def test_runs_trained_in_parallel_match_runs_trained_one_after_another(tiny_stud
     assert sum(line.startswith("[2/4] d4 done (") for line in said) == 1
     with pytest.raises(ConfigError, match="workers must be at least 1"):
         run_bnn_study(cfg, tmp_path / "w0", progress=False, workers=0)
+

@@ -63,10 +63,18 @@ def test_inconsistent_studies_are_refused_with_the_field_named(override: dict, n
         build_graph(load_reproduce_config("tiny", override))
 
 
+def test_finished_studies_keep_their_step_keys() -> None:
+    # The keys the tiny preset's steps had before the BNN study's model section and
+    # train.val_samples existed: a new setting at its default must not change them, or
+    # every finished study would train its BNNs and latent policies again.
+    keys = build_graph(load_reproduce_config("tiny")).keys
+    assert {n: keys[n] for n in ("dataset", "bnn/d8", "bnn/report", "policy/latent/mixed/s0", "policy/raw/mixed/s0")} == {
+        "dataset": "ef61ea451447", "bnn/d8": "a16aec1aea00", "bnn/report": "40c38c299ab5",
+        "policy/latent/mixed/s0": "08d7c1464178", "policy/raw/mixed/s0": "94d4560f09e3"}
+
+
 def test_a_bnn_model_section_reaches_the_bnn_steps_and_leaves_other_keys_alone() -> None:
     plain = build_graph(load_reproduce_config("tiny"))
-    # Without a model section the steps' configs are as before the field existed, so
-    # finished studies keep their keys.
     assert "model" not in plain.steps["bnn/d8"].config
     assert "model" not in plain.steps["bnn/report"].config["study"]
     paper = build_graph(load_reproduce_config("tiny", {"bnn": {"model": {"head_hidden": 0, "latent_norm": False}}}))
