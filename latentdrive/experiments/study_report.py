@@ -226,9 +226,13 @@ def write_report(res: dict[str, Any], out: Path) -> str:
     bnn = res["bnn"]["report"]
     md += ["", "## 9. Bottleneck network", "", "![loss](figures/bnn_loss.png)", "![recon](figures/bnn_reconstruction.png)",
            "![latents](figures/bnn_latents.png)", "![distance](figures/bnn_distance.png)", ""]
-    md += _table(["run", "d", "λ", "held-out recon", "vehicle recall", "mean scenario MMD²"],
+    noisy = bnn.get("noisy_input_vehicles") or {}
+    md += _table(["run", "d", "λ", "held-out recon", "vehicle recall", "precision", "mean scenario MMD²"],
                  [[n, str(r["latent_dim"]), f"{r['lambda']:g}", _num(r.get("val_recon"), 4), _pct(r.get("vehicle_recall")),
-                   _num(r.get("mean_between_scenario_distance"))] for n, r in bnn["runs"].items()])
+                   _pct(r.get("vehicle_precision")), _num(r.get("mean_between_scenario_distance"))]
+                  for n, r in bnn["runs"].items()]
+                 + [["noisy input (reference)", "", "", "", _pct(noisy.get("vehicle_recall")),
+                     _pct(noisy.get("vehicle_precision")), ""]])
     md += ["", f"Latent policies use `{res['bnn']['policy_run']}`; raw-input mean scenario MMD²: "
            f"{_num(bnn.get('raw_mean_between_scenario_distance'))}."]
 

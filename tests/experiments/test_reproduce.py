@@ -43,6 +43,10 @@ def test_the_tiny_study_reports_every_experiment(tiny_study: Path) -> None:
                     "Leave one scenario out", "Ablations", "Bottleneck network", "linear probes", "What this run can and cannot show",
                     "The imitation reference"):
         assert section in report
+    # The BNN table scores vehicles both ways, beside the noisy input's own scores.
+    bnn_rows = report[report.index("## 9. Bottleneck network"):].splitlines()
+    assert "| run | d | λ | held-out recon | vehicle recall | precision | mean scenario MMD² |" in bnn_rows
+    assert any(row.startswith("| noisy input (reference) |") for row in bnn_rows)
     for fig in ("headline", "matrix", "transfer", "leave_one_out", "ablations", "bnn_loss", "bnn_distance"):
         assert (tiny_study / "figures" / f"{fig}.png").stat().st_size > 1000
     # Every figure the report shows is there.
