@@ -463,8 +463,9 @@ def format_report(report: dict[str, Any]) -> str:
     lines = [
         "# Bottleneck network study",
         "",
-        f"Dataset: {report['dataset_samples']} samples; evaluation on {report['held_out_samples']} "
-        "held-out samples (whole episodes held out).",
+        f"Dataset: {report['dataset_samples']} samples; whole episodes held out. Reconstruction error and "
+        f"vehicles are scored on every held-out sample, scenario distances and figures on "
+        f"{report['held_out_samples']} of them.",
         "",
         "## Reconstruction error and scenario distance per run",
         "",
