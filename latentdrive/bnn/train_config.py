@@ -118,8 +118,7 @@ class BNNTrainConfig(Config):
         0, ge=0, le=1 << 30,
         description="Held-out samples scored at each validation during training, the first "
         "ones the validation batches yield (0: all of them); train-bnn and the studies then "
-        "draw validation batches that hold every scenario in proportion. Scoring every "
-        "vehicle costs about as much as training on the same samples. Studies score their "
+        "draw validation batches that hold every scenario in proportion. Studies score their "
         "final weights on every held-out sample regardless.",
     )
     precision: Precision = Field(
