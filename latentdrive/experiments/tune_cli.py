@@ -50,7 +50,7 @@ def add_tune_parser(sub: Any) -> None:
                        "OUT/study.db (or --storage); rerun the command to resume a killed search. Writes OUT/tune.md, "
                        "OUT/best.yaml (for train-policy --config) and OUT/figures/.")
     s.add_argument("out", help="search folder: study.db, trials/<n>/seed-<k>/ runs, tune.md, best.yaml, figures/")
-    s.add_argument("--space", default="raw", help="search space: a preset (raw, the default) or a .yaml file")
+    s.add_argument("--space", default="raw", help="search space: a preset (raw, the default; raw-short, 25,000 agent-transitions per run) or a .yaml file")
     s.add_argument("--trials", type=positive_int, default=30, help="trials in the study when done (default 30)")
     s.add_argument("--steps", type=positive_int, default=None, help="agent-transitions per training run (default: the space's base)")
     s.add_argument("--seeds", type=positive_int, default=2, help="training seeds per trial, 0..N-1; the objective is their mean (default 2)")

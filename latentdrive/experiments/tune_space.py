@@ -35,7 +35,7 @@ __all__ = ["FIXED_KEYS", "PRESETS", "TUNE_BASE", "CategoricalDist", "FloatDist",
 
 PRESETS_DIR = Path(__file__).parent / "presets"
 #: Named space presets: ``tune-<name>.yaml`` beside the study presets.
-PRESETS = ("raw",)
+PRESETS = ("raw", "raw-short")
 #: Settings a search fixes itself: the seed comes from ``--seeds``, the budget from
 #: ``--steps``, and trials are scored on validation episodes only.
 FIXED_KEYS = ("seed", "steps", "eval_seeds")

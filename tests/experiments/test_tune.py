@@ -141,13 +141,15 @@ def test_bad_base_settings_are_refused(tmp_path, capsys):
     assert "dqn.nope: unknown key" in _error(capsys)
 
 
-def test_the_default_preset_is_a_valid_space():
+@pytest.mark.parametrize("preset, steps", [("raw", 50_000), ("raw-short", 25_000)])
+def test_the_space_presets_are_valid_spaces(preset, steps):
     from latentdrive.experiments.tune_space import base_config, check_space, load_space
 
-    space = load_space("raw")
+    space = load_space(preset)
     base = base_config(space, None, {})
     check_space(space, base)
     assert base.mode == "raw" and len(base.scenarios) == 5 and base.eval_seeds == "validation"
+    assert base.steps == steps
     with pytest.raises(ConfigError, match="unknown preset"):
         load_space("nope")
 
