@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from latentdrive.bnn.vehicles import VehicleCounts, label_blobs, vehicle_counts
+from latentdrive.bnn.vehicles import VehicleCounts, bright_cell_reach, label_blobs, vehicle_counts
 
 
 def _maps() -> torch.Tensor:
@@ -106,3 +106,33 @@ def test_total_adds_field_by_field() -> None:
     parts = [VehicleCounts(3, 2, 10, 7), VehicleCounts(1, 1, 0, 0)]
     assert VehicleCounts.total(parts) == VehicleCounts(4, 3, 10, 7)
     assert VehicleCounts.total([]) == VehicleCounts(0, 0, 0, 0)
+
+
+def test_drawn_cells_are_counted_by_their_distance_to_the_nearest_car() -> None:
+    # One car at column 2 of a 1 × 12 strip; drawn cells 0, 1, 3 and 5 columns away from
+    # it, one faint cell below the threshold, and one drawn in another frame with no car.
+    target = torch.zeros(2, 1, 12)
+    target[0, 0, 2] = 0.9
+    recon = torch.zeros(2, 1, 12)
+    recon[0, 0, [2, 3, 5, 7]] = 0.6
+    recon[0, 0, 10] = 0.2  # below the 0.25 threshold: not drawn
+    recon[1, 0, 2] = 0.6  # frame 1 has no car: far from every car
+    bright, within = bright_cell_reach(recon, target, (0, 1, 2, 3, 5))
+    assert bright == 5
+    assert within == (1, 2, 2, 3, 4)
+
+
+def test_reach_at_one_cell_is_the_precision_numerator() -> None:
+    t = _maps()
+    recon = torch.roll(t, shifts=2, dims=2) + 0.3 * (torch.rand(t.shape, generator=torch.Generator().manual_seed(0)) > 0.9)
+    bright, (within_1,) = bright_cell_reach(recon, t, (1,))
+    counts = vehicle_counts(recon, t)
+    assert (bright, within_1) == (counts.bright_cells, counts.bright_on_vehicles)
+    assert 0 < within_1 < bright
+
+
+def test_reach_refuses_bad_shapes_and_tolerances() -> None:
+    with pytest.raises(ValueError, match="shapes"):
+        bright_cell_reach(torch.zeros(1, 4, 4), torch.zeros(1, 4, 5))
+    with pytest.raises(ValueError, match=">= 0 cells"):
+        bright_cell_reach(torch.zeros(1, 4, 4), torch.zeros(1, 4, 4), (-1,))

@@ -43,6 +43,13 @@ def test_tiny_study_writes_report_and_figures(tiny_study):
         assert run["vehicle_recall"] is None or 0.0 <= run["vehicle_recall"] <= 1.0
         assert set(run["vehicle_recall_by_scenario"]) == set(ref["by_scenario"])
     assert "## Held-out vehicles recovered, per scenario" in text
+    # Where drawn cells lie: shares that grow with the distance; the noisy input's are high
+    # (it draws cars where they are, jittered by under a cell).
+    assert "## Where the drawn vehicle cells lie" in text and "| noisy input (reference) | " in text.split("## Where")[1]
+    for within in [ref["drawn_cells_within"], *(r["drawn_cells_within"] for r in report["runs"].values())]:
+        shares = [within[k] for k in ("1", "2", "3", "5", "8")]
+        assert shares[0] is None or (shares == sorted(shares) and 0.0 <= shares[0] and shares[-1] <= 1.0)
+    assert ref["drawn_cells_within"]["1"] > 0.9
     for fig in ("bnn_loss", "bnn_reconstruction", "bnn_latents", "bnn_distance"):
         assert (out / "figures" / f"{fig}.png").read_bytes()[:4] == b"\x89PNG"
 
@@ -86,6 +93,10 @@ def test_format_report_lists_every_run():
                               "latent_distance": [[0, 0.5], [0.5, 0]], "mean_between_scenario_distance": 0.5}}}
     text = format_report(report)
     assert "| d4 | 4 | 0 | 0.500000 | 0.2500 | 87.5% | 50.0% | 0.5000 |" in text
+    # A report written before the drawn cells' distances were measured has no such table.
+    assert "Where the drawn vehicle cells lie" not in text
+    report["runs"]["d4"]["drawn_cells_within"] = {"1": 0.5, "2": 0.75, "3": 0.8, "5": 0.9, "8": 1.0}
+    assert "| d4 | 50.0% | 75.0% | 80.0% | 90.0% | 100.0% |" in format_report(report)
 
 
 def test_train_bnn_cli_on_the_study_dataset(tiny_study, tmp_path, capsys):
