@@ -2,7 +2,9 @@
 
 Each step has a *size* in the unit its time grows with (agent-transitions for a policy,
 sample-epochs for a BNN, episodes for an evaluation), and a *class* within which that time
-per unit is roughly constant (a policy's input mode, an evaluation's backend and policy).
+per unit is roughly constant (a policy's input mode, a BNN's batch size and architecture,
+an evaluation's backend and policy). A class the measured study did not run is reported
+as unmeasured rather than borrowed from another.
 A finished study gives seconds per unit for each class; a planned study's steps times
 their sizes give its step times, and a list schedule over ``workers`` (the executor's own
 order: longest remaining chain first) gives its wall time.
@@ -28,7 +30,7 @@ def step_size(step: Step) -> tuple[str, float]:
     if step.kind == "bnn":
         # An epoch's time also grows with the dataset, which this step's config does not
         # hold: estimate_study scales it (bnn_scale).
-        return "bnn", float(c["train"]["pretrain_epochs"] + c["train"]["mixed_epochs"])
+        return _bnn_class(c), float(c["train"]["pretrain_epochs"] + c["train"]["mixed_epochs"])
     if step.kind == "bnn-report":
         study = c["study"]
         return "bnn-report", float(len(c["runs"]) * study["eval_samples"] * len(study["collect"]["scenarios"]))
@@ -42,6 +44,16 @@ def step_size(step: Step) -> tuple[str, float]:
         p = c["probe"]
         return "probes", float(p["episodes"] * len(p["scenarios"]))
     raise ConfigError(f"no size for step kind {step.kind!r}")
+
+
+def _bnn_class(c: Mapping[str, Any]) -> str:
+    """A BNN step's class: its time per sample depends on the batch size (on a CPU a
+    sample costs more in small batches) and the architecture (hidden layers, stages), so
+    the rate of one never stands in for another. The code size is left out: the study
+    trains several, at nearly the same cost, and their mean rate is what it measures."""
+    model = ",".join(f"{k}={v}" for k, v in sorted((c.get("model") or {}).items()))
+    channels = "-".join(str(ch) for ch in c["channels"])
+    return f"bnn:batch{c['train']['batch_size']}:channels{channels}" + (f":{model}" if model else "")
 
 
 def measured_rates(graph: Graph, records: Mapping[str, StepRecord]) -> dict[str, float]:
@@ -86,7 +98,7 @@ def estimate_study(graph: Graph, rates: Mapping[str, float], workers: int, bnn_s
             unmeasured.add(cls)
             times[name] = 0.0
             continue
-        t = rates[cls] * n * (bnn_scale if cls == "bnn" else 1.0)
+        t = rates[cls] * n * (bnn_scale if step.kind == "bnn" else 1.0)
         times[name] = t
         by_class[cls] = by_class.get(cls, 0.0) + t / 3600
     return Estimate(steps=len(graph.order), step_hours=sum(times.values()) / 3600,

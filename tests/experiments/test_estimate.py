@@ -68,3 +68,17 @@ def test_capped_bnn_epochs_are_refused(tiny_study: Path) -> None:
     capped = load_reproduce_config("tiny", {"bnn": {"train": {"epoch_steps": 5}}})
     with pytest.raises(ConfigError, match=r"planned study caps BNN epochs \(bnn.train.epoch_steps=5\)"):
         estimate_from(tiny_study, capped, [1])
+
+
+def test_a_bnn_of_another_batch_size_or_architecture_is_not_measured_by_this_one(tiny_study: Path) -> None:
+    # A BNN's time per sample depends on its batch size and structure: a study that trained
+    # other BNNs does not measure them, and says so rather than borrowing their rate.
+    same = estimate_from(tiny_study, load_reproduce_config("tiny"), [1])[0]
+    assert not [c for c in same.unmeasured if c.startswith("bnn:")]
+    assert [c for c in same.by_class if c.startswith("bnn:batch")]
+    tiny = load_reproduce_config("tiny")
+    for change in ({"train": {"batch_size": tiny.bnn.train.batch_size * 2}}, {"model": {"head_hidden": 0}},
+                   {"channels": [4]}):
+        other = estimate_from(tiny_study, load_reproduce_config("tiny", {"bnn": change}), [1])[0]
+        assert [c for c in other.unmeasured if c.startswith("bnn:")], change
+        assert not [c for c in other.by_class if c.startswith("bnn:")], change
