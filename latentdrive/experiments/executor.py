@@ -18,7 +18,6 @@ import shutil
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from multiprocessing.connection import wait as mp_wait
 from pathlib import Path
 from typing import Any, Protocol
 
@@ -27,6 +26,7 @@ from tqdm.auto import tqdm
 from latentdrive.errors import LatentDriveError, first_line
 from latentdrive.evaluate.stats import json_values
 from latentdrive.experiments.graph import Graph, Step, StepRecord
+from latentdrive.experiments.processes import Processes
 from latentdrive.fileio import peak_rss_mb, reset_peak_rss
 
 __all__ = ["Runner", "StepFailed", "StepKind", "StepRecords", "check_kinds", "execute_step", "run_graph", "run_local"]
@@ -114,74 +114,27 @@ class Runner(Protocol):
         """The record of a finished step, or its exception raised."""
 
 
-class _Handle:
-    """A step running in its own process, with the pipe its result comes back on."""
-
-    def __init__(self, process: Any, conn: Any) -> None:
-        self.process, self.conn = process, conn
-
-
-def _child(conn: Any, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
-           records: StepRecords) -> None:
-    """A worker process: run one step, send back its record or its error's first line."""
-    try:
-        conn.send((True, execute_step(kind, step, key, inputs, folder, records)))
-    except BaseException as exc:  # reported by the driver with the step's name
-        conn.send((False, f"{first_line(exc)}" if isinstance(exc, LatentDriveError) else
-                   f"{type(exc).__name__}: {first_line(exc)}"))
-    finally:
-        conn.close()
-
-
-class _Processes:
-    """One fresh process per step. A process that dies (killed, out of memory) fails its own
-    step only; a pool would break and take every running step down with it."""
+class _Steps:
+    """The :class:`Runner` of local worker processes: one fresh process per step
+    (:class:`~latentdrive.experiments.processes.Processes`), so a step whose process dies
+    fails alone."""
 
     def __init__(self, ctx: Any, slots: int) -> None:
-        self.ctx, self.slots = ctx, slots
-        self.live: set[_Handle] = set()
+        self.pool, self.slots = Processes(ctx), slots
 
     def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
                records: StepRecords) -> Any:
-        recv, send = self.ctx.Pipe(duplex=False)
-        p = self.ctx.Process(target=_child, args=(send, kind, step, key, inputs, folder, records),
-                             name=f"latentdrive step {step.name}")
-        p.start()
-        send.close()
-        h = _Handle(p, recv)
-        self.live.add(h)
-        return h
+        return self.pool.start(f"step {step.name}", (execute_step, (kind, step, key, inputs, folder, records), {}))
 
     def wait(self, handles: Sequence[Any]) -> list[Any]:
-        # A result arriving, or a process ending without one, wakes the driver; waiting on
-        # the pipe too means a child never blocks on a full pipe while the driver waits.
-        ready = set(mp_wait([x for h in handles for x in (h.conn, h.process.sentinel)]))
-        return [h for h in handles if h.conn in ready or h.process.sentinel in ready]
+        return self.pool.wait(handles)
 
     def result(self, handle: Any) -> StepRecord:
-        h: _Handle = handle
-        try:
-            msg = h.conn.recv() if h.conn.poll() else None
-        except EOFError:  # the pipe closed with nothing in it: the process died
-            msg = None
-        h.process.join()
-        h.conn.close()
-        self.live.discard(h)
-        if msg is None:
-            code = h.process.exitcode
-            how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-            raise LatentDriveError(f"its worker process died ({how}) before finishing")
-        ok, value = msg
-        if not ok:
-            raise LatentDriveError(value)
-        rec: StepRecord = value
+        rec: StepRecord = self.pool.result(handle)
         return rec
 
     def stop(self) -> None:
-        for h in list(self.live):
-            h.process.terminate()
-        for h in list(self.live):
-            h.process.join()
+        self.pool.stop()
 
 
 def check_kinds(graph: Graph, kinds: Mapping[str, StepKind]) -> None:
@@ -203,7 +156,7 @@ def run_local(graph: Graph, out: Path, kinds: Mapping[str, StepKind], workers: i
     check_kinds(graph, kinds)
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(list(preload))
-    runner = _Processes(ctx, workers)
+    runner = _Steps(ctx, workers)
     try:
         return run_graph(graph, out, kinds, runner, progress=progress, on_done=on_done)
     finally:

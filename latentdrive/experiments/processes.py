@@ -1,21 +1,23 @@
-"""Run independent jobs, each in a fresh process, a few at a time.
+"""Jobs each in a fresh process, a few at a time: the study's steps and the BNN study's runs.
 
-For resumable jobs that write their own results (BNN runs of the study): a job that fails
-stops the others at once (they continue from their last checkpoint when run again), an
-interrupt stops them all, and a process that dies gives a one-line error, not a broken
-pool. Processes are spawned: a forked child would inherit torch's thread pools and locks.
+A process per job, not a pool: a job whose process dies (killed, out of memory) fails
+alone, where a broken pool would take every running job down with it. :class:`Processes`
+starts jobs and collects their results or their errors' first lines; the study's executor
+schedules steps on it, and :func:`run_processes` runs independent resumable jobs (BNN
+runs), stopping them all at the first failure or an interrupt, since they continue from
+their last checkpoints when run again.
 """
 
 from __future__ import annotations
 
 import multiprocessing as mp
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from multiprocessing.connection import wait as mp_wait
 from typing import Any
 
 from latentdrive.errors import LatentDriveError, first_line
 
-__all__ = ["Job", "run_processes"]
+__all__ = ["Job", "Processes", "run_processes"]
 
 #: ``(function, args, kwargs)``: a module-level function (sent to the child by reference).
 Job = tuple[Callable[..., Any], tuple[Any, ...], Mapping[str, Any]]
@@ -32,6 +34,72 @@ def _child(conn: Any, job: Job) -> None:
         conn.close()
 
 
+class _Running:
+    """A job's process and the pipe its result comes back on."""
+
+    def __init__(self, process: Any, conn: Any) -> None:
+        self.process, self.conn = process, conn
+
+
+class Processes:
+    """Jobs, each in its own process of the multiprocessing context ``ctx`` (spawn by
+    default: a forked child would inherit torch's thread pools and locks)."""
+
+    def __init__(self, ctx: Any = None) -> None:
+        self.ctx = ctx if ctx is not None else mp.get_context("spawn")
+        self.live: set[_Running] = set()
+
+    def start(self, name: str, job: Job) -> _Running:
+        """Start ``job`` in a new process named after ``name``; returns its handle."""
+        recv, send = self.ctx.Pipe(duplex=False)
+        p = self.ctx.Process(target=_child, args=(send, job), name=f"latentdrive {name}")
+        p.start()
+        send.close()
+        h = _Running(p, recv)
+        self.live.add(h)
+        return h
+
+    def wait(self, handles: Sequence[_Running]) -> list[_Running]:
+        """Block until at least one of ``handles`` has finished; return the finished ones."""
+        # A result arriving, or a process ending without one, wakes the caller; waiting on
+        # the pipe too means a child never blocks on a full pipe while the caller waits.
+        ready = set(mp_wait([x for h in handles for x in (h.conn, h.process.sentinel)]))
+        return [h for h in handles if h.conn in ready or h.process.sentinel in ready]
+
+    def result(self, h: _Running) -> Any:
+        """The finished job's return value.
+
+        Raises:
+            LatentDriveError: the job's error (its first line, with the exception's type
+                unless it was a LatentDriveError), or ``its process died (…) before
+                finishing`` when the process ended without a result.
+        """
+        try:
+            msg = h.conn.recv() if h.conn.poll() else None
+        except EOFError:  # the pipe closed with nothing in it: the process died
+            msg = None
+        h.process.join()
+        h.conn.close()
+        self.live.discard(h)
+        if msg is None:
+            code = h.process.exitcode
+            how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
+            raise LatentDriveError(f"its process died ({how}) before finishing")
+        ok, value = msg
+        if not ok:
+            raise LatentDriveError(value)
+        return value
+
+    def stop(self) -> None:
+        """Terminate every job still running and wait for their processes to end."""
+        for h in list(self.live):
+            h.process.terminate()
+        for h in list(self.live):
+            h.process.join()
+            h.conn.close()
+        self.live.clear()
+
+
 def run_processes(jobs: Mapping[str, Job], workers: int,
                   on_done: Callable[[str, Any], None] | None = None) -> dict[str, Any]:
     """Run ``jobs`` (name → job), at most ``workers`` at once, in the order given; returns
@@ -43,46 +111,24 @@ def run_processes(jobs: Mapping[str, Job], workers: int,
     """
     if workers < 1:
         raise LatentDriveError(f"workers must be at least 1, got {workers}")
-    ctx = mp.get_context("spawn")
+    pool = Processes()
     todo = list(jobs.items())
-    live: dict[Any, tuple[str, Any, Any]] = {}  # sentinel → (name, process, connection)
+    running: dict[_Running, str] = {}
     results: dict[str, Any] = {}
     try:
-        while todo or live:
-            while todo and len(live) < workers:
+        while todo or running:
+            while todo and len(running) < workers:
                 name, job = todo.pop(0)
-                recv, send = ctx.Pipe(duplex=False)
-                p = ctx.Process(target=_child, args=(send, job), name=f"latentdrive {name}")
-                p.start()
-                send.close()
-                live[p.sentinel] = (name, p, recv)
-            # Waiting on the pipes too means a child never blocks on a full pipe.
-            ready = set(mp_wait([x for _, p, c in live.values() for x in (c, p.sentinel)]))
-            for sentinel, (name, p, conn) in list(live.items()):
-                if conn not in ready and sentinel not in ready:
-                    continue
+                running[pool.start(name, job)] = name
+            for h in pool.wait(list(running)):
+                name = running.pop(h)
                 try:
-                    msg = conn.recv() if conn.poll() else None
-                except EOFError:  # closed with nothing in it: the process died
-                    msg = None
-                p.join()
-                conn.close()
-                del live[sentinel]
-                if msg is None:
-                    code = p.exitcode
-                    how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-                    raise LatentDriveError(f"{name}: its process died ({how}) before finishing; "
-                                           f"run the same command again to resume")
-                ok, value = msg
-                if not ok:
-                    raise LatentDriveError(f"{name}: {value}")
-                results[name] = value
+                    results[name] = pool.result(h)
+                except LatentDriveError as exc:
+                    resume = "; run the same command again to resume" if "process died" in str(exc) else ""
+                    raise LatentDriveError(f"{name}: {exc}{resume}") from None
                 if on_done is not None:
-                    on_done(name, value)
+                    on_done(name, results[name])
     finally:
-        for _, p, _ in live.values():
-            p.terminate()
-        for _, p, conn in live.values():
-            p.join()
-            conn.close()
+        pool.stop()
     return results

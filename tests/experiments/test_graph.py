@@ -135,7 +135,7 @@ def test_a_worker_killed_mid_step_fails_its_step_only(tmp_path: Path) -> None:
                Step("after", "toy", {"value": 3}, {"a": "slow"}), Step("more", "toy", {"value": 4})])
     with pytest.raises(StepFailed) as info:
         run_local(g, tmp_path, KINDS, workers=2, preload=PRELOAD, progress=False)
-    assert "dies: its worker process died (killed by signal 9)" in str(info.value)
+    assert "dies: its process died (killed by signal 9)" in str(info.value)
     assert all(g.record(tmp_path, n) is not None for n in ("slow", "after", "more"))
 
 
