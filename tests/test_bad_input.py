@@ -102,6 +102,12 @@ def ws(tmp_path_factory: pytest.TempPathFactory) -> Path:
                    "raw_distance": [[0.0, 1.0], [1.0]], "raw_mean_between_scenario_distance": None,
                    "runs": {"d4": {"latent_dim": 4, "lambda": 0, "val_recon": 0.1,
                                    "mean_between_scenario_distance": None,
+                                   "latent_scenarios": ["a"], "latent_distance": [[0.0]]}}}),
+               "reach_not_a_share": json.dumps({
+                   "dataset_samples": 1, "held_out_samples": 1, "raw_scenarios": ["a"], "raw_distance": [[0.0]],
+                   "raw_mean_between_scenario_distance": None,
+                   "runs": {"d4": {"latent_dim": 4, "lambda": 0, "val_recon": 0.1,
+                                   "mean_between_scenario_distance": None, "drawn_cells_within": {"1": "most"},
                                    "latent_scenarios": ["a"], "latent_distance": [[0.0]]}}})}
     for name, text in reports.items():
         (w / f"study_{name}").mkdir()
@@ -192,6 +198,7 @@ CASES = [
     ("figures-report-is-a-list", "figures bnn {w}/study_list", "not a BNN study report"),
     ("figures-run-escapes", "figures bnn {w}/study_escaping_run", "'../../x'"),
     ("figures-ragged-matrix", "figures bnn {w}/study_ragged_matrix", "raw_distance"),
+    ("figures-reach-not-a-share", "figures bnn {w}/study_reach_not_a_share", "drawn_cells_within"),
     ("figures-binary-config", "figures bnn {w}/study_binary_config", "not UTF-8"),
     ("figures-not-a-study", "figures bnn {w}/ds", "not a finished study"),
     ("study-into-another-dataset", "bnn-study {w}/study_other --preset tiny -q", "holds a dataset of config"),

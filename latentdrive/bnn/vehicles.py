@@ -126,7 +126,7 @@ def vehicle_counts(
         peak_r = torch.zeros(k, dtype=recon.dtype, device=recon.device)
         peak_r = peak_r.scatter_reduce(0, inverse, reach.flatten()[on], "amax", include_self=False)
         recovered = int((peak_r >= rel_threshold * peak_t).sum())
-    near = F.max_pool2d(mask.to(recon.dtype).unsqueeze(1), k_size, stride=1, padding=tolerance).squeeze(1) > 0
+    near = _near(mask, tolerance)
     bright = recon >= cell_threshold
     return VehicleCounts(
         vehicles=k,
@@ -161,9 +161,10 @@ def bright_cell_reach(
     if any(k < 0 for k in ks):
         raise ValueError(f"tolerances must be >= 0 cells, got {ks}")
     bright = recon >= cell_threshold
-    mask = (target > 0).to(recon.dtype).unsqueeze(1)
-    within = []
-    for k in ks:
-        near = F.max_pool2d(mask, 2 * k + 1, stride=1, padding=k).squeeze(1) > 0
-        within.append(int((bright & near).sum()))
-    return int(bright.sum()), tuple(within)
+    mask = target > 0
+    return int(bright.sum()), tuple(int((bright & _near(mask, k)).sum()) for k in ks)
+
+
+def _near(mask: Tensor, k: int) -> Tensor:
+    """Cells within ``k`` cells (Chebyshev distance) of a True cell of boolean masks ``(N, H, W)``."""
+    return F.max_pool2d(mask.to(torch.float32).unsqueeze(1), 2 * k + 1, stride=1, padding=k).squeeze(1) > 0

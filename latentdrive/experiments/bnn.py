@@ -25,6 +25,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from pydantic import Field, ValidationError, field_validator
+from torch import Tensor
 
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import read_checkpoint
@@ -267,20 +268,34 @@ def input_vehicle_recovery(ds: ShardDataset, val_ids: np.ndarray, batch_size: in
 
 
 @torch.no_grad()
-def drawn_cell_reach(model: BottleneckNetwork | None, data: HeldOut, batch: int = 128) -> dict[str, float | None]:
-    """Share of the drawn vehicle cells (HV and AV channels, ≥ 0.25) within k cells of a
-    real vehicle, for each k of :data:`~latentdrive.bnn.vehicles.REACH_CELLS`, over the
-    samples of ``data``: ``{"1": share, "2": share, ...}`` (k = 1 is the precision). With
-    ``model`` None the noisy input itself is scored, as the reference."""
+def drawn_cell_reach(data: HeldOut, draw: Callable[[Tensor], Tensor], batch: int = 128) -> dict[str, float | None]:
+    """Share of drawn vehicle cells within k cells of a real vehicle of their frame and
+    channel, for each k of :data:`~latentdrive.bnn.vehicles.REACH_CELLS`, over the samples
+    of ``data``: ``{"1": share, "2": share, ...}`` (None when nothing is drawn).
+
+    ``draw`` maps noisy observations ``(B, 4, T, H, W)`` to the HV+AV pair it draws,
+    ``(B, 2, T, H, W)`` in [0, 1]; cells ≥ 0.25 count as drawn. See :func:`reach_references`
+    for the noisy input and chance.
+    """
     bright, within = 0, np.zeros(len(REACH_CELLS), np.int64)
     h, w = data.clean.shape[-2:]
     for i in range(0, len(data.scenario), batch):
         noisy, clean = torch.from_numpy(data.noisy[i:i + batch]), torch.from_numpy(data.clean[i:i + batch])
-        recon = channel_pairs(noisy)[:, 0] if model is None else model(noisy)[0][:, 0]
-        b, k = bright_cell_reach(recon.reshape(-1, h, w), channel_pairs(clean)[:, 0].reshape(-1, h, w))
+        b, k = bright_cell_reach(draw(noisy).reshape(-1, h, w), channel_pairs(clean)[:, 0].reshape(-1, h, w))
         bright += b
         within += np.asarray(k)
     return {str(k): (float(n) / bright if bright else None) for k, n in zip(REACH_CELLS, within.tolist(), strict=True)}
+
+
+def reach_references(data: HeldOut) -> dict[str, dict[str, float | None]]:
+    """:func:`drawn_cell_reach` of two references: the noisy input itself (``"input"``) and
+    a map drawn bright everywhere (``"every cell"``: the share of all HV and AV cells within
+    k cells of a vehicle, what drawing at random would score)."""
+    def pair(x: Tensor) -> Tensor:
+        return channel_pairs(x)[:, 0]
+
+    return {"input": drawn_cell_reach(data, pair),
+            "every cell": drawn_cell_reach(data, lambda x: torch.ones_like(pair(x)))}
 
 
 def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
@@ -294,7 +309,7 @@ def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.nda
             "vehicle_recall": _finite_or_none(metrics["val_vehicle_recall"]),
             "vehicle_precision": _finite_or_none(metrics["val_vehicle_precision"]),
             "vehicle_recall_by_scenario": _recall_by_name(ds, per),
-            "drawn_cells_within": drawn_cell_reach(model, data),
+            "drawn_cells_within": drawn_cell_reach(data, lambda x: model(x)[0][:, 0]),
             "latent_scenarios": names, "latent_distance": lat.tolist(),
             "mean_between_scenario_distance": _mean_offdiag(lat)}
 
@@ -372,7 +387,8 @@ def report_bnn_runs(cfg: BNNStudyConfig, dataset: Path, runs: Mapping[str, tuple
         "dataset_samples": len(ds), "held_out_samples": len(data.scenario),
         "raw_scenarios": names, "raw_distance": raw.tolist(), "raw_mean_between_scenario_distance": _mean_offdiag(raw),
         "noisy_input_vehicles": {**input_vehicle_recovery(ds, val_ids, cfg.train.batch_size),
-                                 "drawn_cells_within": drawn_cell_reach(None, data)},
+                                 "drawn_cells_within": (refs := reach_references(data))["input"]},
+        "every_cell_within": refs["every cell"],
         "runs": {},
     }
     for name, (run, d, lam) in runs.items():
@@ -479,17 +495,19 @@ def _recall_table(report: dict[str, Any]) -> list[str]:
 def _reach_table(report: dict[str, Any]) -> list[str]:
     """Where each run's drawn vehicle cells lie (absent from reports written before it was measured)."""
     rows = {n: r["drawn_cells_within"] for n, r in report["runs"].items() if r.get("drawn_cells_within")}
+    if not rows:
+        return []
     ref = report.get("noisy_input_vehicles") or {}
     if ref.get("drawn_cells_within"):
         rows["noisy input (reference)"] = ref["drawn_cells_within"]
-    if not rows:
-        return []
+    if report.get("every_cell_within"):
+        rows["every cell (chance)"] = report["every_cell_within"]
     ks = [str(k) for k in REACH_CELLS]
     return ["", "## Where the drawn vehicle cells lie", "",
             f"Share of reconstructed HV and AV cells ≥ 0.25 within k cells of a real vehicle, on the "
             f"{report['held_out_samples']} held-out samples of the figures (k = 1 is the precision above, "
-            "on these samples). Cells drawn near a car are an outline blurred by where the network is unsure "
-            "the car is; cells far from every car are cars drawn where there are none.", "",
+            "on these samples). The chance row is the share of all cells within k cells of a vehicle: what "
+            "cells drawn at random would score.", "",
             "| run | " + " | ".join(f"≤ {k} cell{'s' if k != '1' else ''}" for k in ks) + " |",
             "|---" * (len(ks) + 1) + "|"] + [
         f"| {n} | " + " | ".join(_fmt(r.get(k), ".1%") for k in ks) + " |" for n, r in rows.items()]

@@ -11,7 +11,7 @@ from __future__ import annotations
 import csv
 import io
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
@@ -27,6 +27,11 @@ _EPOCH_FLOATS = ("recon", "val_loss")
 _OPTIONAL_FLOATS = ("val_vehicle_recall",)
 
 
+#: Shares by distance in cells (``{"1": 0.3, "2": 0.5, ...}``): the report's "where the drawn
+#: vehicle cells lie" (absent from reports written before it was measured).
+_Reach = dict[str, Annotated[float, Field(ge=0.0, le=1.0)] | None]
+
+
 def _square(names: list[str], matrix: list[list[float]], what: str) -> None:
     n = len(names)
     if len(matrix) != n or any(len(row) != n for row in matrix):
@@ -39,6 +44,7 @@ class _InputVehicles(BaseModel):
     vehicle_recall: float | None = None
     vehicle_precision: float | None = None
     by_scenario: dict[str, float | None] | None = None
+    drawn_cells_within: _Reach | None = None
 
 
 class _Run(BaseModel):
@@ -51,6 +57,7 @@ class _Run(BaseModel):
     latent_scenarios: list[str]
     latent_distance: list[list[float]]
     vehicle_recall: float | None = None
+    drawn_cells_within: _Reach | None = None
 
     @model_validator(mode="after")
     def _shapes(self) -> _Run:
@@ -67,6 +74,7 @@ class _Report(BaseModel):
     raw_distance: list[list[float]]
     raw_mean_between_scenario_distance: float | None
     noisy_input_vehicles: _InputVehicles | None = None
+    every_cell_within: _Reach | None = None
     runs: dict[str, _Run] = Field(min_length=1)
 
     @model_validator(mode="after")

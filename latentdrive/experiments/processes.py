@@ -17,10 +17,14 @@ from typing import Any
 
 from latentdrive.errors import LatentDriveError, first_line
 
-__all__ = ["Job", "Processes", "run_processes"]
+__all__ = ["Job", "ProcessDied", "Processes", "run_processes"]
 
 #: ``(function, args, kwargs)``: a module-level function (sent to the child by reference).
 Job = tuple[Callable[..., Any], tuple[Any, ...], Mapping[str, Any]]
+
+
+class ProcessDied(LatentDriveError):
+    """A job's process ended without sending a result (killed, out of memory, ``os._exit``)."""
 
 
 def _child(conn: Any, job: Job) -> None:
@@ -53,8 +57,13 @@ class Processes:
         """Start ``job`` in a new process named after ``name``; returns its handle."""
         recv, send = self.ctx.Pipe(duplex=False)
         p = self.ctx.Process(target=_child, args=(send, job), name=f"latentdrive {name}")
-        p.start()
-        send.close()
+        try:
+            p.start()
+        except BaseException:  # e.g. a job that cannot be sent to the child: no pipe left open
+            recv.close()
+            raise
+        finally:
+            send.close()
         h = _Running(p, recv)
         self.live.add(h)
         return h
@@ -71,20 +80,22 @@ class Processes:
 
         Raises:
             LatentDriveError: the job's error (its first line, with the exception's type
-                unless it was a LatentDriveError), or ``its process died (…) before
-                finishing`` when the process ended without a result.
+                unless it was a LatentDriveError).
+            ProcessDied: ``its process died (…) before finishing``, when the process
+                ended without a result.
         """
         try:
             msg = h.conn.recv() if h.conn.poll() else None
         except EOFError:  # the pipe closed with nothing in it: the process died
             msg = None
-        h.process.join()
-        h.conn.close()
-        self.live.discard(h)
+        finally:
+            h.process.join()
+            h.conn.close()
+            self.live.discard(h)
         if msg is None:
             code = h.process.exitcode
             how = f"killed by signal {-code}" if code is not None and code < 0 else f"exit code {code}"
-            raise LatentDriveError(f"its process died ({how}) before finishing")
+            raise ProcessDied(f"its process died ({how}) before finishing")
         ok, value = msg
         if not ok:
             raise LatentDriveError(value)
@@ -124,9 +135,10 @@ def run_processes(jobs: Mapping[str, Job], workers: int,
                 name = running.pop(h)
                 try:
                     results[name] = pool.result(h)
+                except ProcessDied as exc:
+                    raise LatentDriveError(f"{name}: {exc}; run the same command again to resume") from None
                 except LatentDriveError as exc:
-                    resume = "; run the same command again to resume" if "process died" in str(exc) else ""
-                    raise LatentDriveError(f"{name}: {exc}{resume}") from None
+                    raise LatentDriveError(f"{name}: {exc}") from None
                 if on_done is not None:
                     on_done(name, results[name])
     finally:

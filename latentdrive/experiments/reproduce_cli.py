@@ -41,7 +41,8 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     cfg = load_reproduce_config(args.preset, parse_override_args(args.overrides))
     speedup = {}
     for item in args.speedup:
-        name, sep, value = item.partition("=")
+        # The factor follows the last '=': a class name may hold '=' (a BNN's model settings).
+        name, sep, value = item.rpartition("=")
         try:
             speedup[name.strip()] = float(value)
         except ValueError:
@@ -53,10 +54,13 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     faster = f", {', '.join(f'{k} {v:g}x faster' for k, v in speedup.items())}" if speedup else ""
     print(f"{args.preset}: {first.steps} steps, {first.step_hours:.1f} step-hours at the step times of "
           f"{args.measured}{faster}")
+    width = max((len(c) for c in first.by_class), default=0) + 2
     for cls, hours in first.by_class.items():
-        print(f"  {cls:<28}{hours:>9.2f} h")
+        print(f"  {cls:<{width}}{hours:>9.2f} h")
+    # Unmeasured steps count as 0, so the times are lower bounds then.
+    least = "at least " if first.unmeasured else ""
     for e in estimates:
-        print(f"wall time with {e.workers:>3} worker(s): {e.wall_hours:.1f} h")
+        print(f"wall time with {e.workers:>3} worker(s): {least}{e.wall_hours:.1f} h")
     if first.unmeasured:
         print("not measured there (counted as 0): " + ", ".join(first.unmeasured))
     return 0
@@ -65,7 +69,7 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 def add_reproduce_parsers(sub: Any) -> None:
     s = sub.add_parser("reproduce", help="the paper's study in one command: data, BNNs, policies, evaluations, report")
     s.add_argument("out", help="study folder (rerun the same command to resume; finished steps are skipped)")
-    s.add_argument("--preset", default="quick", help="tiny (a minute), quick (default, about 30 min on 2 cores), "
+    s.add_argument("--preset", default="quick", help="tiny (a minute), quick (default, about 17 min on 2 cores), "
                    "paper, or a .yaml file")
     s.add_argument("--seeds", type=int, default=None, help="training seeds per policy (default: the preset's)")
     s.add_argument("--workers", type=int, default=1, help="steps run at once, each in its own process (default 1; "

@@ -82,3 +82,22 @@ def test_a_bnn_of_another_batch_size_or_architecture_is_not_measured_by_this_one
         other = estimate_from(tiny_study, load_reproduce_config("tiny", {"bnn": change}), [1])[0]
         assert [c for c in other.unmeasured if c.startswith("bnn:")], change
         assert not [c for c in other.by_class if c.startswith("bnn:")], change
+
+
+def test_a_bnn_speedup_reaches_the_bnn_classes(tiny_study: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # Long BNNs, so that their hours (rounded to 0.01 h) carry the factor.
+    cfg = load_reproduce_config("tiny", {"bnn": {"train": {"mixed_epochs": 100_000}}})
+    base = estimate_from(tiny_study, cfg, [1])[0]
+    fast = estimate_from(tiny_study, cfg, [1], {"bnn": 4.0})[0]
+    bnn = [c for c in base.by_class if c.startswith("bnn:")]
+    assert bnn and all(base.by_class[c] > 1 and fast.by_class[c] == pytest.approx(base.by_class[c] / 4, rel=0.01)
+                       for c in bnn)
+    # A class named in full keeps every '=' of its name; the factor is what follows the last.
+    assert main(["estimate", str(tiny_study), "--preset", "tiny", "--speedup", "bnn:batch8:head_hidden=0=2"]) == 2
+    assert "--speedup bnn:batch8:head_hidden=0: no such step class" in capsys.readouterr().err
+
+
+def test_an_estimate_with_unmeasured_steps_is_a_lower_bound(tiny_study: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["estimate", str(tiny_study), "--preset", "tiny", "--set", "bnn.train.batch_size=64"]) == 0
+    out = capsys.readouterr().out
+    assert "wall time with   1 worker(s): at least " in out and "not measured there (counted as 0): bnn:batch64" in out

@@ -1,4 +1,4 @@
-"""Independent jobs in their own processes: results, a failing job, a dying process."""
+"""Jobs in their own processes: results, a failing job, a dying process, stopping."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import pytest
 
 from latentdrive.config import ConfigError
 from latentdrive.errors import LatentDriveError
-from latentdrive.experiments.processes import run_processes
+from latentdrive.experiments.processes import ProcessDied, Processes, run_processes
 
 
 def _fail(message: str) -> None:
@@ -41,3 +41,40 @@ def test_a_process_that_dies_is_named_with_its_exit_code() -> None:
 def test_workers_must_be_positive() -> None:
     with pytest.raises(LatentDriveError, match="workers must be at least 1"):
         run_processes({}, 0)
+
+
+def test_a_job_whose_error_mentions_a_dying_process_is_not_told_to_resume() -> None:
+    with pytest.raises(LatentDriveError, match=r"^odd: its process died here$"):
+        run_processes({"odd": (_fail, ("its process died here",), {})}, 1)
+
+
+def test_processes_return_results_errors_and_deaths_and_stop_what_runs() -> None:
+    pool = Processes()
+    ok, bad, gone = (pool.start("ok", (pow, (2, 5), {})), pool.start("bad", (_fail, ("no",), {})),
+                     pool.start("gone", (os._exit, (4,), {})))
+    waiting = [ok, bad, gone]
+    outcomes: dict[str, object] = {}
+    while waiting:
+        for h in pool.wait(waiting):
+            waiting.remove(h)
+            name = {id(ok): "ok", id(bad): "bad", id(gone): "gone"}[id(h)]
+            try:
+                outcomes[name] = pool.result(h)
+            except ProcessDied as exc:
+                outcomes[name] = f"died: {exc}"
+            except LatentDriveError as exc:
+                outcomes[name] = f"error: {exc}"
+    assert outcomes == {"ok": 32, "bad": "error: no", "gone": "died: its process died (exit code 4) before finishing"}
+    assert not pool.live
+    # stop() terminates what still runs, at once.
+    slow = pool.start("slow", (time.sleep, (120,), {}))
+    t0 = time.perf_counter()
+    pool.stop()
+    assert not slow.process.is_alive() and not pool.live and time.perf_counter() - t0 < 30
+
+
+def test_a_job_that_cannot_be_sent_leaves_nothing_running() -> None:
+    pool = Processes()
+    with pytest.raises(Exception):  # noqa: B017 - pickling a lambda fails with the pickler's own error
+        pool.start("lambda", (lambda: 1, (), {}))
+    assert not pool.live
