@@ -143,13 +143,21 @@ def test_bad_base_settings_are_refused(tmp_path, capsys):
 
 @pytest.mark.parametrize("preset, steps", [("raw", 50_000), ("raw-short", 25_000)])
 def test_the_space_presets_are_valid_spaces(preset, steps):
-    from latentdrive.experiments.tune_space import base_config, check_space, load_space
+    from latentdrive.experiments.tune_space import (
+        CategoricalDist,
+        base_config,
+        check_space,
+        load_space,
+    )
 
     space = load_space(preset)
     base = base_config(space, None, {})
     check_space(space, base)
     assert base.mode == "raw" and len(base.scenarios) == 5 and base.eval_seeds == "validation"
     assert base.steps == steps
+    if preset == "raw-short":  # the replay ratios a 2-core CPU runs in minutes
+        ratio = space.space["dqn.updates_per_transition"]
+        assert isinstance(ratio, CategoricalDist) and max(ratio.choices) == 0.5  # type: ignore[type-var]
     with pytest.raises(ConfigError, match="unknown preset"):
         load_space("nope")
 
