@@ -85,7 +85,9 @@ class Search:
 def _optuna() -> Any:
     import optuna
 
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    # ERROR, not WARNING: optuna logs every failed trial with its traceback, an interrupted
+    # one included; the trials table (tune.md) records each failure's error instead.
+    optuna.logging.set_verbosity(optuna.logging.ERROR)
     warnings.filterwarnings("ignore", category=optuna.exceptions.ExperimentalWarning)
     return optuna
 
@@ -279,7 +281,12 @@ def _work(search: Search, worker: int, on_trial: Callable[[], None] | None = Non
 
 
 def _worker_main(search: Search, worker: int) -> None:
-    _work(search, worker)
+    try:
+        _work(search, worker)
+    except KeyboardInterrupt:
+        # Ctrl-C reaches every worker with the parent, which reports it once; a traceback
+        # from each worker would only bury that line.
+        raise SystemExit(130) from None
 
 
 @contextmanager

@@ -237,3 +237,17 @@ def test_train_policy_refuses_a_bad_config_file(tmp_path, capsys):
     assert main(["train-policy", str(tmp_path / "run"), "--config", str(tmp_path / "none.yaml"), "-q"]) == 2
     assert "no such config file" in _error(capsys)
     assert not (tmp_path / "run").exists()
+
+
+def test_an_interrupted_worker_exits_quietly(monkeypatch, capsys):
+    from latentdrive.experiments import tune
+
+    def interrupted(search, worker, on_trial=None):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(tune, "_work", interrupted)
+    with pytest.raises(SystemExit) as info:
+        tune._worker_main(None, 0)  # type: ignore[arg-type]
+    assert info.value.code == 130
+    captured = capsys.readouterr()
+    assert "Traceback" not in captured.err + captured.out
