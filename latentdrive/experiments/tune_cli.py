@@ -7,7 +7,7 @@ import shlex
 import sys
 from typing import Any
 
-from latentdrive.config import parse_override_args, positive_int
+from latentdrive.config import ConfigError, parse_override_args, positive_int
 
 __all__ = ["add_tune_parser"]
 
@@ -26,7 +26,7 @@ def _command(args: argparse.Namespace, steps: int) -> str:
 def _cmd_tune(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from latentdrive.experiments.tune import Search, run_search
+    from latentdrive.experiments.tune import STUDY_DB, Search, open_study, run_search
     from latentdrive.experiments.tune_report import write_report
     from latentdrive.experiments.tune_space import base_config, check_space, load_space
 
@@ -36,8 +36,15 @@ def _cmd_tune(args: argparse.Namespace) -> int:
     search = Search(out=Path(args.out), space=space, base=base, seeds=args.seeds, trials=args.trials,
                     storage=args.storage or None, sampler_seed=args.sampler_seed, prune=not args.no_prune)
     command = _command(args, base.steps)
-    study = run_search(search, workers=args.workers, progress=not args.quiet,
-                       say=lambda line: print(line, file=sys.stderr))
+    if args.report_only:
+        # A look at a search as it stands (running elsewhere, or stopped): no trial runs,
+        # no lock is taken, and a folder without a search gets no study.db.
+        if search.storage is None and not (search.out / STUDY_DB).is_file():
+            raise ConfigError(f"{search.out / STUDY_DB}: no search here to report on")
+        study = open_study(search, create=False)
+    else:
+        study = run_search(search, workers=args.workers, progress=not args.quiet,
+                           say=lambda line: print(line, file=sys.stderr))
     for path in write_report(search, study, command):
         print(f"wrote {path}")
     return 0
@@ -59,6 +66,9 @@ def add_tune_parser(sub: Any) -> None:
                    help="a database URL that several machines share (e.g. postgresql://host/db) instead of OUT/study.db")
     s.add_argument("--sampler-seed", type=int, default=0, help="seed of the TPE sampler (default 0)")
     s.add_argument("--no-prune", action="store_true", help="run every trial to the end (no median pruning)")
+    s.add_argument("--report-only", action="store_true",
+                   help="write tune.md, best.yaml and figures from the trials so far and run none (the other "
+                   "flags must name the same search)")
     s.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                    help="base train-policy setting, repeatable (--set envs=8 --set eval_episodes=20)")

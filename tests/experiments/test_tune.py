@@ -226,6 +226,14 @@ def test_best_yaml_trains_with_train_policy(tmp_path, capsys):
     assert saved["seed"] == 3 and saved["steps"] == 100 and saved["eval_seeds"] == "evaluation"
     assert "Not computed: needs at least 3 completed trials (have 1)" in (out / "tune.md").read_text()
     assert (out / "figures" / "history.png").exists()
+    # --report-only rewrites the report from the trials so far and runs none, even with a
+    # larger --trials; a folder without a search is a one-line error and gets no study.db.
+    (out / "tune.md").unlink()
+    assert _tune(tmp_path, out, "--trials", "5", "--no-prune", "--report-only") == 0
+    assert len(_trials(out)) == 1 and "Not computed" in (out / "tune.md").read_text()
+    capsys.readouterr()
+    assert _tune(tmp_path, tmp_path / "empty", "--report-only") == 2
+    assert "no search here to report on" in _error(capsys) and not (tmp_path / "empty" / "study.db").exists()
 
 
 def test_train_policy_refuses_a_bad_config_file(tmp_path, capsys):
