@@ -1,5 +1,6 @@
 import json
 import shutil
+from typing import Any
 
 import numpy as np
 import pytest
@@ -89,16 +90,16 @@ def test_raw_features_pool():
 
 
 def test_format_report_lists_every_run():
+    run: dict[str, Any] = {"latent_dim": 4, "lambda": 0.0, "val_recon": 0.5, "val_vehicle_l2": 0.25,
+                           "vehicle_recall": 0.875, "vehicle_precision": 0.5, "latent_scenarios": ["a", "b"],
+                           "latent_distance": [[0, 0.5], [0.5, 0]], "mean_between_scenario_distance": 0.5}
     report = {"dataset_samples": 10, "held_out_samples": 4, "raw_scenarios": ["a", "b"],
-              "raw_distance": [[0, 1], [1, 0]], "raw_mean_between_scenario_distance": 1.0,
-              "runs": {"d4": {"latent_dim": 4, "lambda": 0.0, "val_recon": 0.5, "val_vehicle_l2": 0.25,
-                              "vehicle_recall": 0.875, "vehicle_precision": 0.5, "latent_scenarios": ["a", "b"],
-                              "latent_distance": [[0, 0.5], [0.5, 0]], "mean_between_scenario_distance": 0.5}}}
+              "raw_distance": [[0, 1], [1, 0]], "raw_mean_between_scenario_distance": 1.0, "runs": {"d4": run}}
     text = format_report(report)
     assert "| d4 | 4 | 0 | 0.500000 | 0.2500 | 87.5% | 50.0% | 0.5000 |" in text
     # A report written before the drawn cells' distances were measured has no such table.
     assert "Where the drawn vehicle cells lie" not in text
-    report["runs"]["d4"]["drawn_cells_within"] = {"1": 0.5, "2": 0.75, "3": 0.8, "5": 0.9, "8": 1.0}
+    run["drawn_cells_within"] = {"1": 0.5, "2": 0.75, "3": 0.8, "5": 0.9, "8": 1.0}
     assert "| d4 | 50.0% | 75.0% | 80.0% | 90.0% | 100.0% |" in format_report(report)
 
 
