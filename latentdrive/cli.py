@@ -244,7 +244,7 @@ def _cmd_bnn_study(args: argparse.Namespace) -> int:
     cfg = load_study_config(args.preset, parse_override_args(args.overrides))
     t0 = time.perf_counter()
     report = run_bnn_study(cfg, args.out, progress=not args.quiet, workers=args.workers)
-    from latentdrive.experiments.bnn import format_report
+    from latentdrive.experiments.bnn_report import format_report
 
     print(format_report(report))
     print(f"report: {args.out}/report.md, figures: {args.out}/figures/")

@@ -22,23 +22,17 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
-import torch.nn.functional as F
 from pydantic import Field, ValidationError, field_validator
-from torch import Tensor
 
 from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.checkpoint import read_checkpoint
 from latentdrive.bnn.distance import distance_matrix
-from latentdrive.bnn.evaluate import add_counts, evaluate_bnn, vehicle_counts_by_scenario
 from latentdrive.bnn.train import (
     CHECKPOINT_NAME,
     BNNTrainConfig,
     check_run_dir,
-    load_trained_bottleneck,
     train_bnn,
 )
-from latentdrive.bnn.vehicles import REACH_CELLS, VehicleCounts, bright_cell_reach
 from latentdrive.config import Config, ConfigError, describe_validation_error, load_preset, validate
 from latentdrive.data.collect import (
     CollectConfig,
@@ -50,11 +44,19 @@ from latentdrive.data.collect import (
 from latentdrive.data.dataset import ShardDataset
 from latentdrive.data.shards import DatasetError
 from latentdrive.evaluate.stats import json_values
-from latentdrive.experiments.bnn_report import epoch_rows, read_report
-from latentdrive.experiments.heldout import HeldOut, held_out
+from latentdrive.experiments.bnn_report import epoch_rows, fmt_value, format_report, read_report
+from latentdrive.experiments.bnn_scores import (
+    evaluate_run,
+    finite_or_none,
+    input_vehicle_recovery,
+    mean_offdiag,
+    raw_features,
+    reach_references,
+)
+from latentdrive.experiments.heldout import held_out
 from latentdrive.experiments.processes import Job, run_processes
 from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
-from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork, channel_pairs
+from latentdrive.models.bottleneck import BottleneckConfig
 from latentdrive.runlock import dir_lock
 from latentdrive.runtime import usable_cpus
 
@@ -213,107 +215,6 @@ def _check_split(run: Path, split: dict[str, Any]) -> None:
                           "or dataset); resume it with the same settings or use a new run directory")
 
 
-@torch.no_grad()
-def encode(model: BottleneckNetwork, x: np.ndarray, batch: int = 128) -> np.ndarray:
-    """Latents ``(n, 3·d)`` of observations ``x`` ``(n, 4, T, H, W)``."""
-    out = [model.encode(torch.from_numpy(x[i:i + batch])).flatten(1).numpy() for i in range(0, len(x), batch)]
-    return np.concatenate(out) if out else np.zeros((0, model.latent_size), np.float32)
-
-
-@torch.no_grad()
-def reconstruct(model: BottleneckNetwork, x: np.ndarray) -> np.ndarray:
-    """Reconstructions ``(n, 3, 2, T, H, W)`` of noisy observations ``x``."""
-    return model(torch.from_numpy(x))[0].numpy()
-
-
-def raw_features(x: np.ndarray, pool: int) -> np.ndarray:
-    """The raw-input baseline space: ``x`` average-pooled by ``pool`` over H, W and flattened."""
-    t = torch.from_numpy(x)
-    n, _c, _tt, _h, _w = t.shape
-    pooled = F.avg_pool3d(t, kernel_size=(1, pool, pool), ceil_mode=True) if pool > 1 else t
-    return pooled.reshape(n, -1).numpy()
-
-
-def _mean_offdiag(m: np.ndarray) -> float:
-    s = m.shape[0]
-    return float(m[~np.eye(s, dtype=bool)].mean()) if s > 1 else float("nan")
-
-
-def _finite_or_none(v: float) -> float | None:
-    return v if math.isfinite(v) else None
-
-
-def _fmt(v: float | None, spec: str) -> str:
-    return "–" if v is None or not math.isfinite(v) else format(v, spec)
-
-
-def _recall_by_name(ds: ShardDataset, per: dict[int, VehicleCounts]) -> dict[str, float | None]:
-    return {ds.scenario_names[s]: _finite_or_none(c.recall) for s, c in per.items() if c.vehicles}
-
-
-def input_vehicle_recovery(ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
-    """The noisy input scored as if it were a reconstruction of the clean target, over the
-    held-out episodes: the reference for the runs' vehicle scores
-    (:mod:`latentdrive.bnn.vehicles`). Returns ``vehicle_recall``, ``vehicle_precision``,
-    ``vehicles`` and ``by_scenario`` (name → recall); undefined values are None.
-    """
-    per: dict[int, VehicleCounts] = {}
-    for b in ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False):
-        per = add_counts(per, vehicle_counts_by_scenario(channel_pairs(b.noisy)[:, 0], channel_pairs(b.clean)[:, 0],
-                                                         b.scenario))
-    total = VehicleCounts.total(per.values())
-    return {"vehicle_recall": _finite_or_none(total.recall),
-            "vehicle_precision": _finite_or_none(total.precision), "vehicles": total.vehicles,
-            "by_scenario": _recall_by_name(ds, per)}
-
-
-@torch.no_grad()
-def drawn_cell_reach(data: HeldOut, draw: Callable[[Tensor], Tensor], batch: int = 128) -> dict[str, float | None]:
-    """Share of drawn vehicle cells within k cells of a real vehicle of their frame and
-    channel, for each k of :data:`~latentdrive.bnn.vehicles.REACH_CELLS`, over the samples
-    of ``data``: ``{"1": share, "2": share, ...}`` (None when nothing is drawn).
-
-    ``draw`` maps noisy observations ``(B, 4, T, H, W)`` to the HV+AV pair it draws,
-    ``(B, 2, T, H, W)`` in [0, 1]; cells ≥ 0.25 count as drawn. See :func:`reach_references`
-    for the noisy input and chance.
-    """
-    bright, within = 0, np.zeros(len(REACH_CELLS), np.int64)
-    h, w = data.clean.shape[-2:]
-    for i in range(0, len(data.scenario), batch):
-        noisy, clean = torch.from_numpy(data.noisy[i:i + batch]), torch.from_numpy(data.clean[i:i + batch])
-        b, k = bright_cell_reach(draw(noisy).reshape(-1, h, w), channel_pairs(clean)[:, 0].reshape(-1, h, w))
-        bright += b
-        within += np.asarray(k)
-    return {str(k): (float(n) / bright if bright else None) for k, n in zip(REACH_CELLS, within.tolist(), strict=True)}
-
-
-def reach_references(data: HeldOut) -> dict[str, dict[str, float | None]]:
-    """:func:`drawn_cell_reach` of two references: the noisy input itself (``"input"``) and
-    a map drawn bright everywhere (``"every cell"``: the share of all HV and AV cells within
-    k cells of a vehicle, what drawing at random would score)."""
-    def pair(x: Tensor) -> Tensor:
-        return channel_pairs(x)[:, 0]
-
-    return {"input": drawn_cell_reach(data, pair),
-            "every cell": drawn_cell_reach(data, lambda x: torch.ones_like(pair(x)))}
-
-
-def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
-    """Held-out reconstruction error and latent scenario distances of one trained run."""
-    model = load_trained_bottleneck(run_dir)
-    metrics, per = evaluate_bnn(model, ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False),
-                                         torch.device("cpu"), mmd_samples=2)
-    names, lat = distance_matrix(data.by_scenario(encode(model, data.noisy)))
-    return {"val_recon": metrics["val_loss"], "val_vehicle_l2": metrics["val_vehicle_l2"],
-            # None, not NaN, when undefined (no vehicles, nothing drawn): JSON has no NaN.
-            "vehicle_recall": _finite_or_none(metrics["val_vehicle_recall"]),
-            "vehicle_precision": _finite_or_none(metrics["val_vehicle_precision"]),
-            "vehicle_recall_by_scenario": _recall_by_name(ds, per),
-            "drawn_cells_within": drawn_cell_reach(data, lambda x: model(x)[0][:, 0]),
-            "latent_scenarios": names, "latent_distance": lat.tolist(),
-            "mean_between_scenario_distance": _mean_offdiag(lat)}
-
-
 def run_bnn_study(cfg: BNNStudyConfig, out: str | Path, progress: bool = True,
                   say: Callable[[str], None] = print, workers: int = 1) -> dict[str, Any]:
     """Run (or resume) the whole study into ``out``; returns the report it writes.
@@ -364,8 +265,8 @@ def _train_in_parallel(cfg: BNNStudyConfig, out: Path, runs: list[tuple[str, int
     def report(name: str, m: dict[str, float]) -> None:
         done.append(name)
         say(f"[2/4] {name} done ({len(done)}/{len(runs)}): its last validation's recall "
-            f"{_fmt(_finite_or_none(m.get('val_vehicle_recall', math.nan)), '.3f')}, precision "
-            f"{_fmt(_finite_or_none(m.get('val_vehicle_precision', math.nan)), '.3f')}")
+            f"{fmt_value(finite_or_none(m.get('val_vehicle_recall', math.nan)), '.3f')}, precision "
+            f"{fmt_value(finite_or_none(m.get('val_vehicle_precision', math.nan)), '.3f')}")
 
     # A failure or an interrupt stops every run at once; each continues from its last
     # epoch's checkpoint when the study is run again.
@@ -385,7 +286,7 @@ def report_bnn_runs(cfg: BNNStudyConfig, dataset: Path, runs: Mapping[str, tuple
     names, raw = distance_matrix(data.by_scenario(raw_features(data.noisy, cfg.raw_pool)))
     report: dict[str, Any] = {
         "dataset_samples": len(ds), "held_out_samples": len(data.scenario),
-        "raw_scenarios": names, "raw_distance": raw.tolist(), "raw_mean_between_scenario_distance": _mean_offdiag(raw),
+        "raw_scenarios": names, "raw_distance": raw.tolist(), "raw_mean_between_scenario_distance": mean_offdiag(raw),
         "noisy_input_vehicles": {**input_vehicle_recovery(ds, val_ids, cfg.train.batch_size),
                                  "drawn_cells_within": (refs := reach_references(data))["input"]},
         "every_cell_within": refs["every cell"],
@@ -468,85 +369,3 @@ def figures_from_study(out: str | Path) -> list[Path]:
 
     return write_bnn_figures(out / "figures", {name: out / "runs" / name for name in report["runs"]},
                              held_out(ds, val_ids, cfg.eval_samples, seed=cfg.train.seed), report, cfg.train.seed)
-
-
-def _matrix_md(names: list[str], m: list[list[float]]) -> str:
-    lines = ["| | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
-    lines += [f"| {n} | " + " | ".join(f"{v:.3f}" for v in row) + " |" for n, row in zip(names, m, strict=True)]
-    return "\n".join(lines)
-
-
-def _recall_table(report: dict[str, Any]) -> list[str]:
-    """Vehicles recovered per scenario and run (Markdown), when the report has them."""
-    rows = {n: r.get("vehicle_recall_by_scenario") for n, r in report["runs"].items()}
-    ref = (report.get("noisy_input_vehicles") or {}).get("by_scenario")
-    if ref:
-        rows = {"noisy input (reference)": ref, **rows}
-    rows = {n: r for n, r in rows.items() if r}
-    if not rows:
-        return []
-    scen = list(next(iter(rows.values())))
-    lines = ["", "## Held-out vehicles recovered, per scenario", "",
-             "| run | " + " | ".join(scen) + " |", "|---" * (len(scen) + 1) + "|"]
-    lines += [f"| {n} | " + " | ".join(_fmt(r.get(s), ".1%") for s in scen) + " |" for n, r in rows.items()]
-    return lines
-
-
-def _reach_table(report: dict[str, Any]) -> list[str]:
-    """Where each run's drawn vehicle cells lie (absent from reports written before it was measured)."""
-    rows = {n: r["drawn_cells_within"] for n, r in report["runs"].items() if r.get("drawn_cells_within")}
-    if not rows:
-        return []
-    ref = report.get("noisy_input_vehicles") or {}
-    if ref.get("drawn_cells_within"):
-        rows["noisy input (reference)"] = ref["drawn_cells_within"]
-    if report.get("every_cell_within"):
-        rows["every cell (chance)"] = report["every_cell_within"]
-    ks = [str(k) for k in REACH_CELLS]
-    return ["", "## Where the drawn vehicle cells lie", "",
-            f"Share of reconstructed HV and AV cells ≥ 0.25 within k cells of a real vehicle, on the "
-            f"{report['held_out_samples']} held-out samples of the figures (k = 1 is the precision above, "
-            "on these samples). The chance row is the share of all cells within k cells of a vehicle: what "
-            "cells drawn at random would score.", "",
-            "| run | " + " | ".join(f"≤ {k} cell{'s' if k != '1' else ''}" for k in ks) + " |",
-            "|---" * (len(ks) + 1) + "|"] + [
-        f"| {n} | " + " | ".join(_fmt(r.get(k), ".1%") for k in ks) + " |" for n, r in rows.items()]
-
-
-def format_report(report: dict[str, Any]) -> str:
-    """The study's findings as Markdown tables."""
-    runs = report["runs"]
-    lines = [
-        "# Bottleneck network study",
-        "",
-        f"Dataset: {report['dataset_samples']} samples; whole episodes held out. Reconstruction error and "
-        f"vehicles are scored on every held-out sample, scenario distances and figures on "
-        f"{report['held_out_samples']} of them.",
-        "",
-        "## Reconstruction error and scenario distance per run",
-        "",
-        "| run | d | λ | held-out L2 (mean per element) | held-out L2 on vehicle cells "
-        "| vehicles recovered | precision of bright cells | mean between-scenario MMD² (latent) |",
-        "|---|---|---|---|---|---|---|---|",
-    ]
-    lines += [f"| {n} | {r['latent_dim']} | {r['lambda']:g} | {_fmt(r['val_recon'], '.6f')} | {_fmt(r.get('val_vehicle_l2'), '.4f')} "
-              f"| {_fmt(r.get('vehicle_recall'), '.1%')} | {_fmt(r.get('vehicle_precision'), '.1%')} "
-              f"| {_fmt(r['mean_between_scenario_distance'], '.4f')} |" for n, r in runs.items()]
-    ref = report.get("noisy_input_vehicles")
-    if ref is not None:
-        lines += [f"| noisy input (reference) | – | – | – | – | {_fmt(ref['vehicle_recall'], '.1%')} "
-                  f"| {_fmt(ref['vehicle_precision'], '.1%')} | – |"]
-    lines += _recall_table(report)
-    lines += ["", "A vehicle (a blob of cells in a clean HV or AV frame) is *recovered* when the "
-              "reconstruction reaches half its peak value on it or within one cell of it; *precision* is "
-              "the share of reconstructed cells ≥ 0.25 within one cell of a real vehicle "
-              "(`latentdrive.bnn.vehicles`). The reference row scores the noisy input itself as a "
-              "reconstruction of the clean target."]
-    lines += _reach_table(report)
-    lines += ["", f"Raw-input baseline space: mean between-scenario MMD² {_fmt(report['raw_mean_between_scenario_distance'], '.4f')}.",
-              "", "## Scenario distance (MMD²), raw-input baseline space", "",
-              _matrix_md(report["raw_scenarios"], report["raw_distance"])]
-    for n, r in runs.items():
-        lines += ["", f"## Scenario distance (MMD²), latent space of {n}", "",
-                  _matrix_md(r["latent_scenarios"], r["latent_distance"])]
-    return "\n".join(lines) + "\n"

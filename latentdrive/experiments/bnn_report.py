@@ -1,4 +1,5 @@
-"""Reading back what a BNN study wrote: its report and its runs' metrics, checked.
+"""A BNN study's report: its Markdown (:func:`format_report`), and reading back what the
+study wrote, its report and its runs' metrics, checked.
 
 ``latentdrive figures bnn DIR`` redraws figures from files that may have been edited,
 truncated or copied from elsewhere. Everything the figures and the Markdown report use is
@@ -10,15 +11,17 @@ from __future__ import annotations
 
 import csv
 import io
+import math
 from pathlib import Path
 from typing import Annotated, Any
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from latentdrive.bnn.vehicles import REACH_CELLS
 from latentdrive.config import ConfigError, describe_validation_error
 from latentdrive.fileio import MAX_JSON_BYTES, confined, read_json, read_text
 
-__all__ = ["MAX_METRICS_BYTES", "epoch_rows", "read_report"]
+__all__ = ["MAX_METRICS_BYTES", "epoch_rows", "fmt_value", "format_report", "read_report"]
 
 #: Largest metrics.csv read (a row every few optimizer steps: a long run's is a few MiB).
 MAX_METRICS_BYTES = 256 << 20
@@ -136,3 +139,89 @@ def _check_epoch_row(row: dict[str, str]) -> None:
     for key in _OPTIONAL_FLOATS:
         if row.get(key):
             float(row[key])
+
+
+def fmt_value(v: float | None, spec: str) -> str:
+    return "–" if v is None or not math.isfinite(v) else format(v, spec)
+
+
+def _matrix_md(names: list[str], m: list[list[float]]) -> str:
+    lines = ["| | " + " | ".join(names) + " |", "|---" * (len(names) + 1) + "|"]
+    lines += [f"| {n} | " + " | ".join(f"{v:.3f}" for v in row) + " |" for n, row in zip(names, m, strict=True)]
+    return "\n".join(lines)
+
+
+def _recall_table(report: dict[str, Any]) -> list[str]:
+    """Vehicles recovered per scenario and run (Markdown), when the report has them."""
+    rows = {n: r.get("vehicle_recall_by_scenario") for n, r in report["runs"].items()}
+    ref = (report.get("noisy_input_vehicles") or {}).get("by_scenario")
+    if ref:
+        rows = {"noisy input (reference)": ref, **rows}
+    rows = {n: r for n, r in rows.items() if r}
+    if not rows:
+        return []
+    scen = list(next(iter(rows.values())))
+    lines = ["", "## Held-out vehicles recovered, per scenario", "",
+             "| run | " + " | ".join(scen) + " |", "|---" * (len(scen) + 1) + "|"]
+    lines += [f"| {n} | " + " | ".join(fmt_value(r.get(s), ".1%") for s in scen) + " |" for n, r in rows.items()]
+    return lines
+
+
+def _reach_table(report: dict[str, Any]) -> list[str]:
+    """Where each run's drawn vehicle cells lie (absent from reports written before it was measured)."""
+    rows = {n: r["drawn_cells_within"] for n, r in report["runs"].items() if r.get("drawn_cells_within")}
+    if not rows:
+        return []
+    ref = report.get("noisy_input_vehicles") or {}
+    if ref.get("drawn_cells_within"):
+        rows["noisy input (reference)"] = ref["drawn_cells_within"]
+    if report.get("every_cell_within"):
+        rows["every cell (chance)"] = report["every_cell_within"]
+    ks = [str(k) for k in REACH_CELLS]
+    return ["", "## Where the drawn vehicle cells lie", "",
+            f"Share of reconstructed HV and AV cells ≥ 0.25 within k cells of a real vehicle, on the "
+            f"{report['held_out_samples']} held-out samples of the figures (k = 1 is the precision above, "
+            "on these samples). The chance row is the share of all cells within k cells of a vehicle: what "
+            "cells drawn at random would score.", "",
+            "| run | " + " | ".join(f"≤ {k} cell{'s' if k != '1' else ''}" for k in ks) + " |",
+            "|---" * (len(ks) + 1) + "|"] + [
+        f"| {n} | " + " | ".join(fmt_value(r.get(k), ".1%") for k in ks) + " |" for n, r in rows.items()]
+
+
+def format_report(report: dict[str, Any]) -> str:
+    """The study's findings as Markdown tables."""
+    runs = report["runs"]
+    lines = [
+        "# Bottleneck network study",
+        "",
+        f"Dataset: {report['dataset_samples']} samples; whole episodes held out. Reconstruction error and "
+        f"vehicles are scored on every held-out sample, scenario distances and figures on "
+        f"{report['held_out_samples']} of them.",
+        "",
+        "## Reconstruction error and scenario distance per run",
+        "",
+        "| run | d | λ | held-out L2 (mean per element) | held-out L2 on vehicle cells "
+        "| vehicles recovered | precision of bright cells | mean between-scenario MMD² (latent) |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
+    lines += [f"| {n} | {r['latent_dim']} | {r['lambda']:g} | {fmt_value(r['val_recon'], '.6f')} | {fmt_value(r.get('val_vehicle_l2'), '.4f')} "
+              f"| {fmt_value(r.get('vehicle_recall'), '.1%')} | {fmt_value(r.get('vehicle_precision'), '.1%')} "
+              f"| {fmt_value(r['mean_between_scenario_distance'], '.4f')} |" for n, r in runs.items()]
+    ref = report.get("noisy_input_vehicles")
+    if ref is not None:
+        lines += [f"| noisy input (reference) | – | – | – | – | {fmt_value(ref['vehicle_recall'], '.1%')} "
+                  f"| {fmt_value(ref['vehicle_precision'], '.1%')} | – |"]
+    lines += _recall_table(report)
+    lines += ["", "A vehicle (a blob of cells in a clean HV or AV frame) is *recovered* when the "
+              "reconstruction reaches half its peak value on it or within one cell of it; *precision* is "
+              "the share of reconstructed cells ≥ 0.25 within one cell of a real vehicle "
+              "(`latentdrive.bnn.vehicles`). The reference row scores the noisy input itself as a "
+              "reconstruction of the clean target."]
+    lines += _reach_table(report)
+    lines += ["", f"Raw-input baseline space: mean between-scenario MMD² {fmt_value(report['raw_mean_between_scenario_distance'], '.4f')}.",
+              "", "## Scenario distance (MMD²), raw-input baseline space", "",
+              _matrix_md(report["raw_scenarios"], report["raw_distance"])]
+    for n, r in runs.items():
+        lines += ["", f"## Scenario distance (MMD²), latent space of {n}", "",
+                  _matrix_md(r["latent_scenarios"], r["latent_distance"])]
+    return "\n".join(lines) + "\n"

@@ -9,13 +9,9 @@ from helpers import held_by_another_process
 from latentdrive.cli import main
 from latentdrive.config import ConfigError, LatentDriveError
 from latentdrive.data.dataset import ShardDataset
-from latentdrive.experiments.bnn import (
-    format_report,
-    load_study_config,
-    raw_features,
-    run_bnn_study,
-    run_name,
-)
+from latentdrive.experiments.bnn import load_study_config, run_bnn_study, run_name
+from latentdrive.experiments.bnn_report import format_report
+from latentdrive.experiments.bnn_scores import raw_features
 
 
 @pytest.fixture(scope="module")
