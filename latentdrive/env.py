@@ -48,9 +48,10 @@ class AgentStep(NamedTuple):
     """Per-agent account of one policy step; every field ``(n_av,)`` (vector env: ``(num_envs, n_av)``).
 
     ``acting`` agents chose this step's action: each has a transition. Of those, exactly one
-    of ``terminated`` (crashed or completed its mission on this step: do not bootstrap),
-    ``truncated`` (the episode ended for another reason: bootstrap from the next
-    observation) and ``active`` (drives on) is true. After ``reset()``: all ``active``,
+    of ``terminated`` (crashed or completed its mission on this step, or, with a nonzero
+    ``reward.failure``, was still driving when the episode ended as a failure: do not
+    bootstrap), ``truncated`` (the episode ended for another reason: bootstrap from the
+    next observation) and ``active`` (drives on) is true. After ``reset()``: all ``active``,
     none acting.
     """
 
@@ -205,6 +206,12 @@ class Episode:
         self.ended = terminated or truncated
         own_end: NDArray[np.bool_] = acting & (scene.crashed[ag] | scene.arrived[ag])  # type: ignore[index]
         cut_off = acting & ~own_end & self.ended
+        failed = self.ended and bool(scene.crashed[ag].any() or not scene.arrived[ag].all())  # type: ignore[index]
+        if failed and self.config.reward.failure != 0.0:
+            # The team's failure is the end of these agents' episode too: paid and not
+            # bootstrapped, so that neither a time-out nor a partner's crash is free.
+            rewards = rewards + self.config.reward.failure * cut_off
+            own_end, cut_off = own_end | cut_off, np.zeros_like(cut_off)
         self.active = acting & ~own_end & (not self.ended)
         self._agents = AgentStep(rewards, acting.copy(), own_end, cut_off, self.active.copy())
         self.observing = acting.copy()

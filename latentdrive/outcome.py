@@ -8,7 +8,18 @@ from typing import NamedTuple
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["EpisodeOutcome", "outcomes_from_json", "outcomes_to_json"]
+from latentdrive.scene import Kind, Scene
+
+__all__ = ["FAILURE_CAUSES", "EpisodeOutcome", "failure_cause", "outcomes_from_json", "outcomes_to_json"]
+
+#: Why an episode failed, as :func:`failure_cause` names it; a success's cause is "".
+#: "unrecorded" marks failures read from files written before causes were recorded.
+FAILURE_CAUSES: tuple[str, ...] = (
+    "time-out", "HV ahead", "HV behind", "HV beside", "other AV", "no vehicle", "after arrival", "unrecorded",
+)
+#: Centre distance (m) within which a crashed vehicle counts as the crashed AV's partner;
+#: two cars in contact are at most about one car length and one width apart.
+PARTNER_RANGE = 8.0
 
 
 class EpisodeOutcome(NamedTuple):
@@ -37,6 +48,8 @@ class EpisodeOutcome(NamedTuple):
     #: Human drivers crashed among themselves (or into the road's obstacles) while no AV
     #: had crashed. A wreck can block a lane for good: a failure no AV could avoid.
     traffic_crashed: bool = False
+    #: Why it failed (one of :data:`FAILURE_CAUSES`), "" if it succeeded.
+    cause: str = ""
 
     @property
     def crashed(self) -> bool:
@@ -59,6 +72,44 @@ class EpisodeOutcome(NamedTuple):
         return self.failed and not self.crashed
 
 
+def failure_cause(scene: Scene) -> str:
+    """Why the episode that ended at ``scene`` failed, or "" if every AV arrived unharmed.
+
+    A crash is described by the first crashed AV (agent order): "after arrival" if it had
+    completed its mission (or completed it on the step it crashed); else by its partner, the nearest other crashed vehicle within
+    :data:`PARTNER_RANGE` m: "other AV", or an HV "ahead", "behind" or "beside", from
+    where the HV's centre lies in the AV's frame (ahead or behind when the longitudinal
+    offset is more than twice the lateral one). With no partner in range the AV crashed
+    alone ("no vehicle": off the road, or into the road's end). Without a crash, a
+    failure is a "time-out". The geometry is that of the last simulated instant, so "HV
+    ahead" covers both running into a car and being cut in on: the label says where the
+    other car was, not whose fault it was.
+    """
+    ag = scene.agents
+    arrived = scene.arrived[ag] if scene.arrived is not None else np.zeros(len(ag), dtype=bool)
+    crashed = scene.crashed[ag]
+    if not crashed.any():
+        return "" if arrived.all() else "time-out"
+    first = int(np.flatnonzero(crashed)[0])
+    if arrived[first]:
+        return "after arrival"
+    v = int(ag[first])
+    offset = scene.position - scene.position[v]  # (N, 2), m
+    dist = np.hypot(offset[:, 0], offset[:, 1])
+    others = scene.mask & scene.crashed & (np.arange(len(dist)) != v) & (dist <= PARTNER_RANGE)
+    if not others.any():
+        return "no vehicle"
+    j = int(np.flatnonzero(others)[np.argmin(dist[others])])
+    if scene.kind[j] == Kind.AV:
+        return "other AV"
+    c, s = np.cos(scene.heading[v]), np.sin(scene.heading[v])
+    lon = offset[j, 0] * c + offset[j, 1] * s
+    lat = -offset[j, 0] * s + offset[j, 1] * c
+    if abs(lon) > 2.0 * abs(lat):
+        return "HV ahead" if lon > 0 else "HV behind"
+    return "HV beside"
+
+
 def outcomes_to_json(outcomes: list[EpisodeOutcome]) -> list[dict[str, object]]:
     """Outcomes as JSON values (arrays as lists), for files a study writes."""
     return [{**o._asdict(), "agent_crashed": o.agent_crashed.tolist(), "agent_arrived": o.agent_arrived.tolist(),
@@ -72,7 +123,9 @@ def outcomes_from_json(items: object) -> list[EpisodeOutcome]:
     out: list[EpisodeOutcome] = []
     for i, d in enumerate(items):
         try:
-            if not isinstance(d, dict) or set(d) != set(EpisodeOutcome._fields):
+            # Files written before causes were recorded lack "cause".
+            if not isinstance(d, dict) or set(d) not in (set(EpisodeOutcome._fields),
+                                                          set(EpisodeOutcome._fields) - {"cause"}):
                 raise ValueError("wrong fields")
             crashed = np.asarray(d["agent_crashed"], dtype=np.bool_)
             arrived = np.asarray(d["agent_arrived"], dtype=np.bool_)
@@ -83,6 +136,10 @@ def outcomes_from_json(items: object) -> list[EpisodeOutcome]:
                                episode_index=int(d["episode_index"]), seed=int(d["seed"]), steps=int(d["steps"]),
                                agent_crashed=crashed, agent_arrived=arrived, agent_return=ret,
                                mean_speed=float(d["mean_speed"]), traffic_crashed=bool(d["traffic_crashed"]))
+            cause = d.get("cause", "" if o.success else "unrecorded")
+            if cause not in (*FAILURE_CAUSES, "") or (cause == "") != o.success:
+                raise ValueError(f"cause {cause!r} does not fit the episode's outcome")
+            o = o._replace(cause=str(cause))
             if min(o.env_index, o.episode_index, o.seed, o.steps) < 0 or not math.isfinite(o.mean_speed):
                 raise ValueError("a negative count or seed, or a speed that is not a number")
             out.append(o)

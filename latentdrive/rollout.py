@@ -20,7 +20,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from latentdrive.env import AgentStep
-from latentdrive.outcome import EpisodeOutcome
+from latentdrive.outcome import EpisodeOutcome, failure_cause
 from latentdrive.scene import Kind, Scene
 from latentdrive.sim import BatchBackend
 from latentdrive.vec import DrivingVecEnv
@@ -105,13 +105,13 @@ class _Tally:
         # among the traffic.
         self.traffic_crashed |= hv_crashed & ~crashed.any(axis=1)
 
-    def close(self, e: int, scenario: str, seed: int) -> EpisodeOutcome:
+    def close(self, e: int, scenario: str, seed: int, cause: str) -> EpisodeOutcome:
         out = EpisodeOutcome(
             scenario=scenario, env_index=e, episode_index=int(self.episode_index[e]), seed=seed,
             steps=int(self.steps[e]), agent_crashed=self.crashed[e].copy(), agent_arrived=self.arrived[e].copy(),
             agent_return=self.returns[e].copy(),
             mean_speed=float(self.speed_sum[e] / max(int(self.speed_n[e]), 1)),
-            traffic_crashed=bool(self.traffic_crashed[e]),
+            traffic_crashed=bool(self.traffic_crashed[e]), cause=cause,
         )
         self.steps[e] = 0
         self.returns[e] = 0.0
@@ -169,7 +169,7 @@ def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[St
                 next_obs[e] = info["final_obs"][e]
                 if clean_next is not None:
                     clean_next[e] = fin["clean_observation"][e]
-                outcomes.append(tally.close(int(e), str(scenarios[e]), int(seeds[e])))
+                outcomes.append(tally.close(int(e), str(scenarios[e]), int(seeds[e]), failure_cause(last_scenes[e])))
         yield StepRecord(obs, actions, agents, next_obs, ended, obs_after, outcomes, last_scenes,
                          clean, clean_next)
         obs, clean = obs_after, clean_after

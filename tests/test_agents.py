@@ -86,6 +86,39 @@ def test_time_out_cuts_off_every_driving_av():
     assert a.truncated.tolist() == [True, True] and not a.terminated.any() and not a.active.any()
 
 
+def test_failure_reward_pays_and_ends_the_partner_of_a_crashed_av():
+    plain, paid = episode(), episode(reward={"failure": -3.0})
+    _, _, _, _, info = plain.advance(scene(crashed=(False, True)))
+    _, _, term, trunc, info_paid = paid.advance(scene(crashed=(False, True)))
+    a, b = info["agents"], info_paid["agents"]
+    assert term and not trunc
+    # Agent 0 was cut off by agent 1's crash: now paid the failure, and not bootstrapped.
+    assert b.reward[0] == pytest.approx(a.reward[0] - 3.0)
+    assert b.terminated.tolist() == [True, True] and not b.truncated.any() and not b.active.any()
+    # The crasher's own reward is the collision as before, with no failure on top.
+    assert b.reward[1] == pytest.approx(a.reward[1]) == pytest.approx(paid.config.reward.collision)
+
+
+def test_failure_reward_at_the_time_limit_reaches_only_the_avs_short_of_their_goal():
+    ep = episode(duration=2, reward={"failure": -3.0})
+    ep.advance(scene(arrived=(True, False)))  # agent 0 arrives on the first step
+    _, _, term, trunc, info = ep.advance(scene(arrived=(True, False)))
+    a = info["agents"]
+    assert trunc and not term
+    assert a.acting.tolist() == [False, True]
+    assert a.terminated.tolist() == [False, True] and not a.truncated.any()
+    speed_term = info["agents"].reward[1] + 3.0
+    assert 0.0 < speed_term <= ep.config.reward.speed
+    assert a.reward[0] == 0.0
+
+
+def test_failure_reward_is_not_paid_when_every_av_arrives():
+    ep = episode(reward={"failure": -3.0})
+    _, _, term, _, info = ep.advance(scene(arrived=(True, True)))
+    a = info["agents"]
+    assert term and (a.reward >= ep.config.reward.mission).all()
+
+
 def test_step_after_the_end_raises_and_reset_starts_over():
     env = make_env("merge", backend="fast", **SMALL)
     _obs, info = env.reset(seed=3)

@@ -17,13 +17,15 @@ from typing import Any
 import numpy as np
 
 from latentdrive.evaluate.stats import MeanCI, PairedTest, RateCI, mean_ci, paired_test, rate_ci
-from latentdrive.outcome import EpisodeOutcome
+from latentdrive.outcome import FAILURE_CAUSES, EpisodeOutcome
 
 __all__ = [
     "MIXED",
     "PolicyReport",
     "ScenarioSummary",
+    "cause_counts",
     "compare",
+    "format_causes",
     "format_compare",
     "format_table",
     "policy_report",
@@ -174,6 +176,37 @@ def format_table(reports: Mapping[str, PolicyReport]) -> str:
                 _pct(s.traffic_crash_rate, ci=False), _num(s.mean_speed, 2), _num(s.mean_return, 2), _num(s.mean_steps, 1),
             ])
     return _render(_TABLE_HEADER, rows, left=2)
+
+
+def cause_counts(outcomes: Sequence[EpisodeOutcome]) -> dict[str, dict[str, int]]:
+    """Episodes by how they ended, per scenario (sorted) and pooled (:data:`MIXED`):
+    ``{scenario: {"episodes": n, "success": k, cause: k, ...}}`` with every cause of
+    :data:`~latentdrive.outcome.FAILURE_CAUSES` that occurs in ``outcomes``, in that order."""
+    present = [c for c in FAILURE_CAUSES if any(o.cause == c for o in outcomes)]
+
+    def count(group: Sequence[EpisodeOutcome]) -> dict[str, int]:
+        return {"episodes": len(group), "success": sum(o.success for o in group),
+                **{c: sum(o.cause == c for o in group) for c in present}}
+
+    groups = _by_scenario(outcomes)
+    return {**{name: count(g) for name, g in groups.items()}, MIXED: count(outcomes)}
+
+
+def format_causes(outcomes: Mapping[str, Sequence[EpisodeOutcome]]) -> str:
+    """A plain-text table of :func:`cause_counts` per policy, as % of episodes.
+
+    "HV ahead/behind/beside" say where the other car was at the crash, not whose fault
+    it was (:func:`~latentdrive.outcome.failure_cause`)."""
+    counts = {policy: cause_counts(o) for policy, o in outcomes.items()}
+    present = [c for c in FAILURE_CAUSES if any(c in row for by in counts.values() for row in by.values())]
+    header = ("policy", "scenario", "episodes", "success %", *(f"{c} %" for c in present))
+    rows = [
+        [policy, scenario, str(row["episodes"]),
+         *(_share(row.get(k, 0) / row["episodes"] if row["episodes"] else math.nan) for k in ("success", *present))]
+        for policy, by in counts.items()
+        for scenario, row in by.items()
+    ]
+    return _render(header, rows, left=2)
 
 
 def _episode_key(o: EpisodeOutcome) -> EpisodeKey:

@@ -163,6 +163,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
           f"{eval_set.as_dict()['reset_seed']}, {args.backend} backend); failure = crashed or mission not "
           "completed in time. [95% Wilson intervals]")
     print(format_table(reports))
+    if args.causes:
+        from latentdrive.evaluate.report import format_causes
+
+        print("how the episodes ended (% of episodes; for a crash, where the other vehicle was, not whose fault it was)")
+        print(format_causes(outcomes))
     comparison = None
     if args.compare:
         from latentdrive.evaluate.report import compare
@@ -178,6 +183,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             "config": {"evaluation": eval_set.as_dict(), "runs": {r: c["train"] for r, c in zip(runs, configs, strict=True)}},
             "policies": {name: rep.as_dict() for name, rep in reports.items()},
         }
+        if args.causes:
+            from latentdrive.evaluate.report import cause_counts
+
+            doc["causes"] = {name: cause_counts(o) for name, o in outcomes.items()}
         if comparison is not None:
             doc["compare"] = {"a": runs[0], "b": args.compare, "tests": comparison}
         print(f"wrote {write_json(args.json, doc)}")
@@ -281,6 +290,9 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("--compare", default="",
                    help="a second run, or a reference policy name: paired differences on the same episodes and McNemar's exact test")
     s.add_argument("--gif", default="", help="draw one episode of the first scenario to this GIF")
+    s.add_argument("--causes", action="store_true",
+                   help="also print how the episodes ended: success, time-out, or a crash by where the other "
+                   "vehicle was (HV ahead, behind, beside; the other AV; none: off the road)")
     s.add_argument("--device", default="auto")
     s.add_argument("-s", "--set", dest="overrides", action="append", default=[], metavar="planner.KEY=VALUE",
                    help="lookahead planner setting, repeatable (--set planner.depth=5 --set planner.rounds=1)")

@@ -106,6 +106,9 @@ class RewardConfig(Config):
         + mission·arrived_i (on the step the mission completes, unless the AV also
           crashes on that step: a crash is a failure and is never paid as an arrival).
 
+    Optionally, ``failure`` is paid to every AV still driving when the episode ends as a
+    failure (see the field), so that time-outs and a partner's crash reach the learner.
+
     An AV that completes its mission stops earning (its episode terminated), so the
     mission must be worth more than the speed term it gives up: at discount γ cruising
     forever is worth ``speed / (1 − γ)`` (4.0 at γ = 0.95, the DQN's default), which a
@@ -117,6 +120,7 @@ class RewardConfig(Config):
     collision: float = Field(-1.0, le=0, description="Reward on the step an AV crashes.")
     speed: float = Field(0.2, ge=0, description="Weight of the normalized-speed term, per step.")
     mission: float = Field(5.0, ge=0, description="Reward on the step an AV completes its mission.")
+    failure: float = Field(0.0, le=0, description="Reward, on the step an episode ends as a failure (an AV crashed, or time ran out before every AV completed its mission), for each AV still driving: the crashed AV's partner and every AV short of its goal at the time limit. When nonzero those transitions are terminal (no bootstrap): the failure is the end of their episode. 0 (the default) pays nothing and bootstraps them, as cut off.")
 
 
 class ScenarioSpec(Config):

@@ -123,5 +123,5 @@ def test_an_hv_crashing_on_the_step_an_av_crashes_is_no_traffic_wreck() -> None:
                        np.zeros((2, 2), bool), np.ones((2, 2), bool))
     crashed = np.array([[True, False], [False, False]])
     tally.add(agents, np.zeros((2, 2)), crashed, np.zeros((2, 2), bool), np.array([True, True]))
-    assert not tally.close(0, "s", 0).traffic_crashed  # the HV hit the AV
-    assert tally.close(1, "s", 0).traffic_crashed  # the HVs hit each other
+    assert not tally.close(0, "s", 0, "HV ahead").traffic_crashed  # the HV hit the AV
+    assert tally.close(1, "s", 0, "time-out").traffic_crashed  # the HVs hit each other

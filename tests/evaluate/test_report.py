@@ -8,7 +8,9 @@ import numpy as np
 import pytest
 
 from latentdrive.evaluate.report import (
+    cause_counts,
     compare,
+    format_causes,
     format_compare,
     format_table,
     policy_report,
@@ -31,10 +33,11 @@ def outcome(
     only) or "success" (both arrived)."""
     crashed = {"crash": [True, False], "timeout": [False, False], "success": [False, False]}
     arrived = {"crash": [False, True], "timeout": [True, False], "success": [True, True]}
+    cause = {"crash": "HV ahead", "timeout": "time-out", "success": ""}
     return EpisodeOutcome(
         scenario, env_index, episode_index, seed, steps,
         np.array(crashed[kind]), np.array(arrived[kind]),
-        np.array([1.0, 3.0]), speed,
+        np.array([1.0, 3.0]), speed, cause=cause[kind],
     )
 
 
@@ -118,3 +121,17 @@ def test_compare_refuses_different_episodes() -> None:
     assert "\n" not in str(err.value)
     with pytest.raises(ValueError, match="twice"):
         compare([*a, a[0]], [*a, a[0]])
+
+
+def test_cause_counts_per_scenario_and_pooled_and_their_table() -> None:
+    outs = [*three(), outcome("crash", "roundabout", seed=5), outcome("success", "roundabout", seed=6)]
+    counts = cause_counts(outs)
+    assert counts == {
+        "merge": {"episodes": 3, "success": 1, "time-out": 1, "HV ahead": 1},
+        "roundabout": {"episodes": 2, "success": 1, "time-out": 0, "HV ahead": 1},
+        "mixed": {"episodes": 5, "success": 2, "time-out": 1, "HV ahead": 2},
+    }
+    lines = format_causes({"p": outs}).splitlines()
+    assert lines[0].split() == ["policy", "scenario", "episodes", "success", "%", "time-out", "%", "HV", "ahead", "%"]
+    assert lines[2].split() == ["p", "merge", "3", "33.3", "33.3", "33.3"]
+    assert lines[-1].split() == ["p", "mixed", "5", "40.0", "20.0", "40.0"]

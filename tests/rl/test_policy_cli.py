@@ -142,6 +142,19 @@ def test_evaluate_writes_json_and_compares(tmp_path, capsys, raw_run):
     # A run compared with itself: no discordant pairs, p = 1.
     assert doc["compare"]["tests"]["mixed"]["failed"]["p_value"] == 1.0
     assert doc["config"]["evaluation"]["reset_seed"] >= 2**30
+    assert "causes" not in doc
+
+
+def test_evaluate_causes_table_and_json(tmp_path, capsys, raw_run):
+    out = tmp_path / "e.json"
+    assert main(["evaluate", str(raw_run), "--episodes", "4", "--envs", "2", "--policy", "stop",
+                 "--causes", "--json", str(out), "-q"]) == 0
+    printed = capsys.readouterr().out
+    assert "how the episodes ended" in printed
+    stop = json.loads(out.read_text())["causes"]["stop"]["intersection"]
+    # Always braking never crashes here and never arrives: every episode is a time-out.
+    assert stop == {"episodes": 4, "success": 0, "time-out": 4}
+    assert any(line.split()[:4] == ["stop", "intersection", "4", "0.0"] for line in printed.splitlines())
 
 
 def test_init_from_fine_tunes_the_same_architecture_only(tmp_path, capsys, raw_run):
