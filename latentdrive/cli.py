@@ -113,14 +113,27 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise LatentDriveError(f"--batch-size must be at least 1, got {args.batch_size}")
     _check_output("--json", args.json)
     if args.bottleneck:
-        from latentdrive.bnn.bench import bench_bottleneck, format_bottleneck_bench
+        from latentdrive.bnn.bench import (
+            bench_bottleneck,
+            bench_precisions,
+            format_bottleneck_bench,
+        )
         from latentdrive.models.bottleneck import BottleneckConfig
+        from latentdrive.runtime import PRECISIONS, resolve_device
 
         fields = parse_override_args(args.overrides)
         threads = int(fields.pop("threads", 1))
+        precision = str(fields.pop("precision", "auto"))
+        if precision not in PRECISIONS:
+            raise LatentDriveError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
         model_cfg = validate(BottleneckConfig, fields, prefix="model.")
-        _say(f"benchmarking BNN training in fp32 and bf16 ({args.steps} steps of {args.batch_size}) ...")
-        brows = bench_bottleneck(model_cfg, batch_size=args.batch_size, steps=args.steps, threads=threads)
+        precisions = bench_precisions(precision, resolve_device("auto"))
+        if precision == "auto" and "bf16" not in precisions:
+            _say("bf16 not measured: no bf16 matrix units here, so bf16 would be emulated and slow "
+                 "(--set precision=bf16 measures it anyway)")
+        _say(f"benchmarking BNN training in {' and '.join(precisions)} ({args.steps} steps of {args.batch_size}) ...")
+        brows = bench_bottleneck(model_cfg, batch_size=args.batch_size, steps=args.steps, threads=threads,
+                                 precisions=precisions)
         print(format_bottleneck_bench(brows, model_cfg, threads))
         if args.json:
             _write_json(args.json, [r.as_dict() for r in brows])
@@ -308,7 +321,8 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--bottleneck", action="store_true",
                    help="benchmark BNN training instead: samples/s of the network's step and of the training loop, "
                         "in fp32 and bf16 (--steps: optimizer steps timed; --batch-size: samples per step; "
-                        "--set: BNN architecture fields and threads=N)")
+                        "--set: BNN architecture fields, threads=N and precision=auto|fp32|bf16; auto measures bf16 "
+                        "only where it is native)")
     s.add_argument("--modes", default="", help="with --train: comma-separated modes (default raw,latent,end-to-end)")
     s.add_argument("--bnn", default="", help="with --train: a BNN run for mode latent (default: an untrained encoder, same cost)")
     s.add_argument("--repeat", type=positive_int, default=1,

@@ -34,7 +34,20 @@ from latentdrive.runtime import (
     torch_settings,
 )
 
-__all__ = ["BottleneckBenchRow", "bench_bottleneck", "format_bottleneck_bench"]
+__all__ = ["BottleneckBenchRow", "bench_bottleneck", "bench_precisions", "format_bottleneck_bench"]
+
+
+def bench_precisions(spec: str, device: torch.device) -> tuple[str, ...]:
+    """The precisions ``bench --bottleneck`` measures for ``--set precision=spec``.
+
+    ``auto``: fp32, and bf16 where ``auto`` resolves to it (CUDA, or a CPU with bf16
+    matrix units). Elsewhere bf16 is emulated, several times slower than fp32, and its
+    pass would take long to tell only that: ``bf16`` measures it anyway. ``fp32``: fp32 only.
+    """
+    native = resolve_precision(spec if spec == "auto" else "fp32", device) == torch.bfloat16
+    if spec == "bf16" or (spec == "auto" and native):
+        return ("fp32", "bf16")
+    return ("fp32",)
 
 
 @dataclass(frozen=True)

@@ -29,3 +29,25 @@ def test_one_row_per_precision_with_measured_rates() -> None:
 def test_bad_sizes_are_refused() -> None:
     with pytest.raises(ValueError, match="steps and batch_size"):
         bench_bottleneck(TINY, batch_size=0, steps=2)
+
+
+def test_auto_measures_bf16_only_where_it_is_native(monkeypatch) -> None:
+    import torch
+
+    from latentdrive.bnn import bench
+
+    cpu = torch.device("cpu")
+    monkeypatch.setattr("latentdrive.runtime.cpu_has_bf16", lambda: False)
+    assert bench.bench_precisions("auto", cpu) == ("fp32",)
+    assert bench.bench_precisions("bf16", cpu) == ("fp32", "bf16")
+    assert bench.bench_precisions("fp32", cpu) == ("fp32",)
+    monkeypatch.setattr("latentdrive.runtime.cpu_has_bf16", lambda: True)
+    assert bench.bench_precisions("auto", cpu) == ("fp32", "bf16")
+    assert bench.bench_precisions("fp32", cpu) == ("fp32",)
+
+
+def test_the_cli_refuses_an_unknown_precision(capsys) -> None:
+    from latentdrive.cli import main
+
+    assert main(["bench", "--bottleneck", "--set", "precision=fp16"]) != 0
+    assert "precision must be one of auto, fp32, bf16, got 'fp16'" in capsys.readouterr().err
