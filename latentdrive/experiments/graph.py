@@ -25,11 +25,32 @@ from typing import Any
 from latentdrive.config import ConfigError
 from latentdrive.fileio import MAX_JSON_BYTES, FileFormatError, atomic_write_text, read_json
 
-__all__ = ["DONE", "Graph", "Step", "StepRecord"]
+__all__ = ["DONE", "LATER_SETTINGS", "Graph", "Step", "StepRecord", "keyed_config"]
 
 DONE = "done.json"
 STEPS_DIR = "steps"
 _SAFE = re.compile(r"[^A-Za-z0-9_.=-]+")
+
+#: Settings added after studies had been run, each with the value that leaves what a step
+#: does unchanged. A step's key leaves such a setting out while it holds that value, so
+#: adding a setting keeps finished studies' keys, and their results (a test pins keys).
+#: A path matches the end of a setting's path in the step's config.
+LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
+    ("train", "val_samples"): 0,
+    ("model",): {},
+    ("reward", "failure"): 0.0,
+}
+
+
+def keyed_config(config: Mapping[str, Any], path: tuple[str, ...] = ()) -> dict[str, Any]:
+    """``config`` as its step's key sees it: without :data:`LATER_SETTINGS` at their values."""
+    out: dict[str, Any] = {}
+    for k, v in config.items():
+        here = (*path, k)
+        if any(here[-len(p):] == p and v == d for p, d in LATER_SETTINGS.items()):
+            continue
+        out[k] = keyed_config(v, here) if isinstance(v, Mapping) else v
+    return out
 
 
 @dataclass(frozen=True)
@@ -110,7 +131,7 @@ class Graph:
         return order
 
     def _key(self, step: Step) -> str:
-        blob = json.dumps({"kind": step.kind, "config": step.config,
+        blob = json.dumps({"kind": step.kind, "config": keyed_config(step.config),
                            "inputs": {role: self.keys[dep] for role, dep in step.inputs.items()}},
                           sort_keys=True, separators=(",", ":"), allow_nan=False)
         return hashlib.sha256(blob.encode()).hexdigest()[:12]

@@ -200,20 +200,15 @@ def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] |
     steps.append(Step("dataset", "dataset", {"collect": collect, "specs": specs}, cost=samples / 300))
     runs = study_runs(bnn_study)
     epochs = cfg.bnn.train.pretrain_epochs + cfg.bnn.train.mixed_epochs
-    # Settings newer than the step keys of finished studies enter a step's config only when
-    # they differ from their defaults, so that those studies keep their keys (a test pins them).
-    train_new = {"val_samples"} if cfg.bnn.train.val_samples == 0 else set()
+    # Settings newer than finished studies stay out of the keys at their old behaviour
+    # (graph.LATER_SETTINGS), so those studies keep their keys.
     for name, d, lam in runs:
-        bnn_cfg = {"train": cfg.bnn.train.replace(lambda_distance=lam).model_dump(mode="json", exclude=train_new),
-                   "latent_dim": d, "channels": list(cfg.bnn.channels), "val_fraction": cfg.bnn.val_fraction}
-        if cfg.bnn.model:
-            bnn_cfg["model"] = dict(cfg.bnn.model)
+        bnn_cfg = {"train": cfg.bnn.train.replace(lambda_distance=lam).model_dump(mode="json"),
+                   "latent_dim": d, "channels": list(cfg.bnn.channels), "val_fraction": cfg.bnn.val_fraction,
+                   "model": dict(cfg.bnn.model)}
         steps.append(Step(f"bnn/{name}", "bnn", bnn_cfg, {"dataset": "dataset"}, cost=epochs * samples / 80))
-    study_new: dict[str, Any] = {"train": train_new} if train_new else {}
-    if not cfg.bnn.model:
-        study_new["model"] = True
     steps.append(Step("bnn/report", "bnn-report",
-                      {"study": bnn_study.model_dump(mode="json", exclude=study_new or None),
+                      {"study": bnn_study.model_dump(mode="json"),
                        "runs": {n: [d, lam] for n, d, lam in runs}},
                       {"dataset": "dataset", **{f"run:{n}": f"bnn/{n}" for n, _, _ in runs}}, cost=30))
     policy_bnn = f"bnn/{run_name(cfg.policy_bnn)}"

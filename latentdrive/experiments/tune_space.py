@@ -27,6 +27,7 @@ from typing import Annotated, Any, Literal, Union
 from pydantic import BaseModel, Field, model_validator
 
 from latentdrive.config import Config, ConfigError, load_preset, merge_overrides, validate
+from latentdrive.experiments.graph import keyed_config
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.scenarios import SCENARIOS
 
@@ -173,8 +174,11 @@ def trial_config(base: PolicyTrainConfig, params: dict[str, Any], seed: int) -> 
 
 
 def search_hash(space: TuneSpace, base: PolicyTrainConfig, seeds: int) -> str:
-    """What a study's trial values depend on: the space, the base config and the seed count."""
+    """What a study's trial values depend on: the space, the base config and the seed count.
+
+    Settings added after a search was started stay out of the hash at their old behaviour
+    (:data:`~latentdrive.experiments.graph.LATER_SETTINGS`), so that search resumes."""
     blob = json.dumps({"space": {k: d.model_dump(mode="json") for k, d in space.space.items()},
-                       "base": base.model_dump(mode="json"), "seeds": seeds},
+                       "base": keyed_config(base.model_dump(mode="json")), "seeds": seeds},
                       sort_keys=True, separators=(",", ":"))
     return hashlib.sha256(blob.encode()).hexdigest()[:16]

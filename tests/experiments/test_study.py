@@ -7,6 +7,7 @@ import collections
 import pytest
 
 from latentdrive.config import ConfigError
+from latentdrive.experiments.graph import keyed_config
 from latentdrive.experiments.study import build_graph, load_reproduce_config
 
 
@@ -75,14 +76,27 @@ def test_finished_studies_keep_their_step_keys() -> None:
 
 def test_a_bnn_model_section_reaches_the_bnn_steps_and_leaves_other_keys_alone() -> None:
     plain = build_graph(load_reproduce_config("tiny"))
-    assert "model" not in plain.steps["bnn/d8"].config
-    assert "model" not in plain.steps["bnn/report"].config["study"]
+    # An empty model section is the behaviour before the section existed: out of the keys.
+    assert "model" not in keyed_config(plain.steps["bnn/d8"].config)
+    assert "model" not in keyed_config(plain.steps["bnn/report"].config)["study"]
     paper = build_graph(load_reproduce_config("tiny", {"bnn": {"model": {"head_hidden": 0, "latent_norm": False}}}))
     assert paper.steps["bnn/d8"].config["model"] == {"head_hidden": 0, "latent_norm": False}
     assert paper.keys["dataset"] == plain.keys["dataset"]
     assert paper.keys["bnn/d8"] != plain.keys["bnn/d8"]
     assert paper.keys["policy/raw/mixed/s0"] == plain.keys["policy/raw/mixed/s0"]
     assert paper.keys["policy/latent/mixed/s0"] != plain.keys["policy/latent/mixed/s0"]
+
+
+def test_a_later_setting_stays_out_of_keys_at_its_old_behaviour_only() -> None:
+    plain = build_graph(load_reproduce_config("tiny"))
+    name = "policy/raw/mixed/s0"
+    assert plain.steps[name].config["train"]["reward"]["failure"] == 0.0
+    assert "failure" not in keyed_config(plain.steps[name].config)["train"]["reward"]
+    paid = build_graph(load_reproduce_config("tiny", {"reward": {"failure": -1.0}}))
+    assert paid.keys[name] != plain.keys[name] and paid.keys["dataset"] == plain.keys["dataset"]
+    # Only the end of a path matches, and only at the listed value.
+    assert keyed_config({"a": {"reward": {"failure": 0.0, "x": 1}}, "failure": 0.0}) == {
+        "a": {"reward": {"x": 1}}, "failure": 0.0}
 
 
 @pytest.mark.parametrize(("model", "names"), [({"latent_dim": 8}, "latent_dim: set by the study"),

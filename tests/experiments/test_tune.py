@@ -259,3 +259,15 @@ def test_an_interrupted_worker_exits_quietly(monkeypatch, capsys):
     assert info.value.code == 130
     captured = capsys.readouterr()
     assert "Traceback" not in captured.err + captured.out
+
+
+def test_a_search_keeps_its_hash_when_a_setting_is_added() -> None:
+    """The raw-short search's hash, as a search started before ``reward.failure`` existed
+    stored it: adding a setting at its old behaviour must not orphan a running search."""
+    from latentdrive.experiments.tune_space import base_config, load_space, search_hash
+
+    space = load_space("raw-short")
+    base = base_config(space, None, {})
+    assert search_hash(space, base, 2) == "49234ff209901876"
+    paid = base_config(space, None, {"reward.failure": -1.0})
+    assert search_hash(space, paid, 2) != "49234ff209901876"
