@@ -73,7 +73,7 @@ def _network_rate(model_cfg: BottleneckConfig, cfg: BNNTrainConfig, batch: BNNBa
 
     def step() -> None:
         with autocast(dtype, device):
-            total, _, _ = step_losses(model, b, 0.0, weights, cfg.loss)
+            total, _, _ = step_losses(model, b, 0.0, weights, cfg.loss, cfg.dice_weight)
         opt.zero_grad(set_to_none=True)
         total.backward()
         opt.step()

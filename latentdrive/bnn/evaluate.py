@@ -71,6 +71,7 @@ def evaluate_bnn(
     dtype: torch.dtype = torch.float32,
     weights: CellWeights = PAPER_WEIGHTS,
     loss: LossKind = "l2",
+    dice: float = 0.0,
 ) -> Evaluation:
     """Validation metrics, the keys of :data:`VAL_KEYS`, and vehicle counts per scenario.
 
@@ -84,8 +85,8 @@ def evaluate_bnn(
       (latents flattened to ``(3d,)``), each scenario subsampled to ``mmd_samples`` vectors
       with ``rng`` (all of them, first ones first, when ``rng`` is None); NaN with fewer
       than two scenarios.
-    - ``val_train_loss``: the training objective's reconstruction term under ``weights``
-      and ``loss`` (:func:`~latentdrive.bnn.losses.reconstruction_error`), so that the
+    - ``val_train_loss``: the training objective's reconstruction term under ``weights``,
+      ``loss`` and ``dice`` (:func:`~latentdrive.bnn.losses.reconstruction_error`), so that the
       held-out loss compares with the training loss.
 
     The network runs under autocast to ``dtype`` (:func:`latentdrive.runtime.autocast`);
@@ -106,7 +107,7 @@ def evaluate_bnn(
         recon_x = torch.sigmoid(logits)
         target = model.pairs(b.clean)
         mse = torch.mean((recon_x - target) ** 2)
-        objective += float(reconstruction_error(logits, target, weights, loss)) * b.noisy.shape[0]
+        objective += float(reconstruction_error(logits, target, weights, loss, dice)) * b.noisy.shape[0]
         v_sum, v_count = vehicle_cells_l2(recon_x, target)
         veh_sum += float(v_sum)
         veh_count += int(v_count)

@@ -236,7 +236,7 @@ def _train(
                             group["lr"] = cfg.step_lr(step, total_steps)
                     with autocast(dtype, device):
                         total, recon, reg = step_losses(
-                            model, b, lam, cfg.cell_weights(step, total_steps), cfg.loss
+                            model, b, lam, cfg.cell_weights(step, total_steps), cfg.loss, cfg.dice_weight
                         )
                     if not torch.isfinite(total):
                         raise FloatingPointError(
@@ -274,7 +274,7 @@ def _train(
                     val = evaluate_bnn(
                         model, val_batches_fn(), device,
                         mmd_samples=cfg.val_mmd_samples, rng=np_rng, dtype=dtype,
-                        weights=cfg.cell_weights(step - 1, total_steps), loss=cfg.loss,
+                        weights=cfg.cell_weights(step - 1, total_steps), loss=cfg.loss, dice=cfg.dice_weight,
                     ).metrics
                 elapsed = time.perf_counter() - t_epoch
                 train_loss, train_recon, train_reg = ep.means()

@@ -98,6 +98,13 @@ class BNNTrainConfig(Config):
         "steps: a high weight buys recall early (every car drawn), a lower one precision late "
         "(no halo around them). None keeps foreground_weight throughout.",
     )
+    dice_weight: float = Field(
+        0.0, ge=0.0, le=100.0,
+        description="Weight of a soft-Dice term over the vehicle channels added to the "
+        "reconstruction loss (latentdrive.bnn.losses.vehicle_dice_loss): unlike the per-cell "
+        "error it charges everything drawn off the cars, the halo that costs precision. "
+        "0 (the default) leaves the loss as it was.",
+    )
     road_weight: float = Field(
         0.3, gt=0.0, le=1e4,
         description="Weight of the road-layout channel's cells. The noise-free road is "

@@ -37,6 +37,7 @@ _SAFE = re.compile(r"[^A-Za-z0-9_.=-]+")
 #: A path matches the end of a setting's path in the step's config.
 LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("train", "val_samples"): 0,
+    ("train", "dice_weight"): 0.0,
     ("model",): {},
     ("reward", "failure"): 0.0,
 }

@@ -200,9 +200,9 @@ def test_train_step_uses_step_losses(
     seen: list[tuple[torch.Tensor, float]] = []
 
     def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float = 0.0, w: CellWeights = PAPER_WEIGHTS,
-            loss: LossKind = "l2"):
+            loss: LossKind = "l2", dice: float = 0.0):
         seen.append((batch.clean, lam))
-        return step_losses(model, batch, lam, w, loss)
+        return step_losses(model, batch, lam, w, loss, dice)
 
     monkeypatch.setattr(train_mod, "step_losses", spy)
     train_fn, _ = _fns(data, 32, 16, stratify_from=1)
@@ -441,9 +441,9 @@ def test_training_follows_the_step_schedules(
 ) -> None:
     seen: list[float] = []
 
-    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float, w: CellWeights, loss: LossKind):
+    def spy(model: BottleneckNetwork, batch: BNNBatch, lam: float, w: CellWeights, loss: LossKind, dice: float):
         seen.append(w.foreground)
-        return step_losses(model, batch, lam, w, loss)
+        return step_losses(model, batch, lam, w, loss, dice)
 
     monkeypatch.setattr(train_mod, "step_losses", spy)
     train_fn, _ = _fns(data, 32, 16, stratify_from=1)  # two steps per epoch, six in all
