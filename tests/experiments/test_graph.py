@@ -5,6 +5,9 @@ from __future__ import annotations
 
 import json
 import os
+import signal
+import threading
+import time
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -26,6 +29,11 @@ def _write(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) 
         raise ValueError("this step always fails\nsecond line")
     if config.get("die"):
         os.kill(os.getpid(), 9)  # as the kernel's out-of-memory killer would
+    if config.get("wait_for"):
+        (folder / "pid").write_text(str(os.getpid()))
+        deadline = time.monotonic() + 60
+        while not Path(config["wait_for"]).exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
     return {"value": total, "pid": os.getpid(), "nan": float("nan")}
 
 
@@ -137,6 +145,40 @@ def test_a_worker_killed_mid_step_fails_its_step_only(tmp_path: Path) -> None:
         run_local(g, tmp_path, KINDS, workers=2, preload=PRELOAD, progress=False)
     assert "dies: its process died (killed by signal 9)" in str(info.value)
     assert all(g.record(tmp_path, n) is not None for n in ("slow", "after", "more"))
+
+
+def _gone(pid: int, within: float = 10.0) -> bool:
+    deadline = time.monotonic() + within
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.05)
+    return False
+
+
+def test_an_interrupt_stops_the_running_step_and_a_rerun_finishes_it(tmp_path: Path) -> None:
+    go = tmp_path / "go"
+    g = Graph([Step("long", "toy", {"value": 1, "wait_for": str(go)})])
+    folder = g.folder(tmp_path, "long")
+
+    def ctrl_c() -> None:
+        deadline = time.monotonic() + 60
+        while not (folder / "pid").exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        os.kill(os.getpid(), signal.SIGINT)
+
+    threading.Thread(target=ctrl_c, daemon=True).start()
+    with pytest.raises(KeyboardInterrupt):
+        run_local(g, tmp_path, KINDS, workers=1, preload=PRELOAD, progress=False)
+    # The step's process does not outlive the study, and the step is not recorded as done.
+    assert _gone(int((folder / "pid").read_text()))
+    assert g.record(tmp_path, "long") is None
+    go.write_text("")
+    run_local(g, tmp_path, KINDS, workers=1, preload=PRELOAD, progress=False)
+    rec = g.record(tmp_path, "long")
+    assert rec is not None and rec.summary["value"] == 1
 
 
 def test_a_retried_task_whose_step_had_finished_keeps_its_results(tmp_path: Path) -> None:
