@@ -72,15 +72,18 @@ class EpisodeOutcome(NamedTuple):
         return self.failed and not self.crashed
 
 
-def failure_cause(scene: Scene) -> str:
+def failure_cause(scene: Scene, arrived_before: NDArray[np.bool_] | None = None) -> str:
     """Why the episode that ended at ``scene`` failed, or "" if every AV arrived unharmed.
 
-    A crash is described by the first crashed AV (agent order): "after arrival" if it had
-    completed its mission (or completed it on the step it crashed); else by its partner, the nearest other crashed vehicle within
+    ``arrived_before``: ``(n_av,)`` the AVs that had completed their mission before the
+    last step (default: none had). A crash is described by the first crashed AV (agent
+    order) that was still driving, by its partner, the nearest other crashed vehicle within
     :data:`PARTNER_RANGE` m: "other AV", or an HV "ahead", "behind" or "beside", from
     where the HV's centre lies in the AV's frame (ahead or behind when the longitudinal
     offset is more than twice the lateral one). With no partner in range the AV crashed
-    alone ("no vehicle": off the road, or into the road's end). Without a crash, a
+    alone ("no vehicle": off the road, or into the road's end). Only when every crashed AV
+    had arrived before is it "after arrival" (an AV that crashes on the step it arrives
+    crashed while driving, as the reward counts it). Without a crash, a
     failure is a "time-out". The geometry is that of the last simulated instant, so "HV
     ahead" covers both running into a car and being cut in on: the label says where the
     other car was, not whose fault it was.
@@ -90,9 +93,11 @@ def failure_cause(scene: Scene) -> str:
     crashed = scene.crashed[ag]
     if not crashed.any():
         return "" if arrived.all() else "time-out"
-    first = int(np.flatnonzero(crashed)[0])
-    if arrived[first]:
+    before = np.zeros(len(ag), dtype=bool) if arrived_before is None else np.asarray(arrived_before, dtype=bool)
+    driving = crashed & ~before
+    if not driving.any():
         return "after arrival"
+    first = int(np.flatnonzero(driving)[0])
     v = int(ag[first])
     offset = scene.position - scene.position[v]  # (N, 2), m
     dist = np.hypot(offset[:, 0], offset[:, 1])

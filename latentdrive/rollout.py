@@ -169,7 +169,9 @@ def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[St
                 next_obs[e] = info["final_obs"][e]
                 if clean_next is not None:
                     clean_next[e] = fin["clean_observation"][e]
-                outcomes.append(tally.close(int(e), str(scenarios[e]), int(seeds[e]), failure_cause(last_scenes[e])))
+                before = scenes[e].arrived[scenes[e].agents] if scenes[e].arrived is not None else None
+                cause = failure_cause(last_scenes[e], before)
+                outcomes.append(tally.close(int(e), str(scenarios[e]), int(seeds[e]), cause))
         yield StepRecord(obs, actions, agents, next_obs, ended, obs_after, outcomes, last_scenes,
                          clean, clean_next)
         obs, clean = obs_after, clean_after

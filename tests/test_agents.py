@@ -112,11 +112,13 @@ def test_failure_reward_at_the_time_limit_reaches_only_the_avs_short_of_their_go
     assert a.reward[0] == 0.0
 
 
-def test_failure_reward_is_not_paid_when_every_av_arrives():
+def test_failure_reward_reaches_the_partner_of_an_av_that_crashes_on_arrival():
+    # Agent 1 arrives and crashes on the same step: a failure, so agent 0 is paid it.
     ep = episode(reward={"failure": -3.0})
-    _, _, term, _, info = ep.advance(scene(arrived=(True, True)))
+    _, _, term, _, info = ep.advance(scene(crashed=(False, True), arrived=(False, True)))
     a = info["agents"]
-    assert term and (a.reward >= ep.config.reward.mission).all()
+    assert term and a.terminated.tolist() == [True, True]
+    assert a.reward[0] < 0 and a.reward[1] == pytest.approx(ep.config.reward.collision)
 
 
 def test_step_after_the_end_raises_and_reset_starts_over():

@@ -51,7 +51,21 @@ def test_ahead_and_behind_follow_the_av_heading():
 def test_no_crash_is_a_success_or_a_time_out_and_an_arrived_crash_is_after_arrival():
     assert failure_cause(scene([], crashed=False, arrived=True)) == ""
     assert failure_cause(scene([], crashed=False)) == "time-out"
-    assert failure_cause(scene([(5.0, 0.0, Kind.HV, True)], arrived=True)) == "after arrival"
+    hit = scene([(5.0, 0.0, Kind.HV, True)], arrived=True)
+    assert failure_cause(hit, arrived_before=np.array([True])) == "after arrival"
+    # Crashing on the step of arrival is a crash while driving, as the reward counts it.
+    assert failure_cause(hit, arrived_before=np.array([False])) == "HV ahead"
+    assert failure_cause(hit) == "HV ahead"
+
+
+def test_the_av_still_driving_names_the_crash_not_the_one_it_hit_after_arrival():
+    # AV 0 had arrived and stopped; AV 1 drives into it: the crash is AV 1's, with the other AV.
+    xy = np.array([[0.0, 0.0], [-5.0, 0.0]])
+    s = Scene(position=xy, heading=np.zeros(2), speed=np.array([0.0, 10.0]), frenet_speed=np.array([0.0, 10.0]),
+              length=np.full(2, 5.0), width=np.full(2, 2.0), kind=np.array([Kind.AV, Kind.AV], np.int8),
+              mask=np.ones(2, bool), crashed=np.ones(2, bool), agents=np.arange(2), road=ROAD,
+              arrived=np.array([True, False]))
+    assert failure_cause(s, arrived_before=np.array([True, False])) == "other AV"
 
 
 def test_rollout_causes_agree_with_the_outcome_and_round_trip_through_json():

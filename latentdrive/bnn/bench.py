@@ -27,6 +27,7 @@ from latentdrive.bnn.losses import step_losses
 from latentdrive.bnn.train import BNNTrainConfig, train_bnn
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.runtime import (
+    PRECISIONS,
     autocast,
     cpu_has_bf16,
     resolve_device,
@@ -44,6 +45,8 @@ def bench_precisions(spec: str, device: torch.device) -> tuple[str, ...]:
     matrix units). Elsewhere bf16 is emulated, several times slower than fp32, and its
     pass would take long to tell only that: ``bf16`` measures it anyway. ``fp32``: fp32 only.
     """
+    if spec not in PRECISIONS:
+        raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {spec!r}")
     native = resolve_precision(spec if spec == "auto" else "fp32", device) == torch.bfloat16
     if spec == "bf16" or (spec == "auto" and native):
         return ("fp32", "bf16")

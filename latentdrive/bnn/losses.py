@@ -118,6 +118,8 @@ def reconstruction_error(
 
     ``dice > 0`` adds ``dice ·`` :func:`vehicle_dice_loss`.
     """
+    if dice < 0.0:
+        raise ValueError(f"the Dice weight must be at least 0, got {dice}")
     logits, target = logits.float(), target.float()
     if loss == "l2":
         err = (torch.sigmoid(logits) - target) ** 2

@@ -48,7 +48,7 @@ def keyed_config(config: Mapping[str, Any], path: tuple[str, ...] = ()) -> dict[
     out: dict[str, Any] = {}
     for k, v in config.items():
         here = (*path, k)
-        if any(here[-len(p):] == p and v == d for p, d in LATER_SETTINGS.items()):
+        if any(here[-len(p):] == p and type(v) is type(d) and v == d for p, d in LATER_SETTINGS.items()):
             continue
         out[k] = keyed_config(v, here) if isinstance(v, Mapping) else v
     return out

@@ -44,6 +44,8 @@ def test_auto_measures_bf16_only_where_it_is_native(monkeypatch) -> None:
     monkeypatch.setattr("latentdrive.runtime.cpu_has_bf16", lambda: True)
     assert bench.bench_precisions("auto", cpu) == ("fp32", "bf16")
     assert bench.bench_precisions("fp32", cpu) == ("fp32",)
+    with pytest.raises(ValueError, match="precision must be one of auto, fp32, bf16, got 'fp16'"):
+        bench.bench_precisions("fp16", cpu)
 
 
 def test_the_cli_refuses_an_unknown_precision(capsys) -> None:

@@ -53,3 +53,8 @@ def test_the_dice_term_adds_to_the_reconstruction_error_and_has_gradients() -> N
     assert float(both - plain) == pytest.approx(2.0 * float(vehicle_dice_loss(logits, t)), rel=1e-6)
     both.backward()
     assert logits.grad is not None and float(logits.grad[0, 0, 0, 0, 1, 1]) < 0  # draw the car brighter
+
+
+def test_a_negative_dice_weight_is_refused() -> None:
+    with pytest.raises(ValueError, match="Dice weight must be at least 0"):
+        reconstruction_error(_logits({}), _target(), dice=-1.0)

@@ -97,6 +97,8 @@ def test_a_later_setting_stays_out_of_keys_at_its_old_behaviour_only() -> None:
     # Only the end of a path matches, and only at the listed value.
     assert keyed_config({"a": {"reward": {"failure": 0.0, "x": 1}}, "failure": 0.0}) == {
         "a": {"reward": {"x": 1}}, "failure": 0.0}
+    # A value of another type is not the old behaviour, even where Python calls it equal.
+    assert keyed_config({"train": {"val_samples": False}}) == {"train": {"val_samples": False}}
 
 
 @pytest.mark.parametrize(("model", "names"), [({"latent_dim": 8}, "latent_dim: set by the study"),
