@@ -119,15 +119,16 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             format_bottleneck_bench,
         )
         from latentdrive.models.bottleneck import BottleneckConfig
-        from latentdrive.runtime import PRECISIONS, resolve_device
+        from latentdrive.runtime import resolve_device
 
         fields = parse_override_args(args.overrides)
         threads = int(fields.pop("threads", 1))
         precision = str(fields.pop("precision", "auto"))
-        if precision not in PRECISIONS:
-            raise LatentDriveError(f"precision must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+        try:
+            precisions = bench_precisions(precision, resolve_device("auto"))
+        except ValueError as exc:
+            raise LatentDriveError(str(exc)) from None
         model_cfg = validate(BottleneckConfig, fields, prefix="model.")
-        precisions = bench_precisions(precision, resolve_device("auto"))
         if precision == "auto" and "bf16" not in precisions:
             _say("bf16 not measured: no bf16 matrix units here, so bf16 would be emulated and slow "
                  "(--set precision=bf16 measures it anyway)")

@@ -206,8 +206,8 @@ class Episode:
         self.ended = terminated or truncated
         own_end: NDArray[np.bool_] = acting & (scene.crashed[ag] | scene.arrived[ag])  # type: ignore[index]
         cut_off = acting & ~own_end & self.ended
-        failed = self.ended and bool(scene.crashed[ag].any() or not scene.arrived[ag].all())  # type: ignore[index]
-        if failed and self.config.reward.failure != 0.0:
+        # The episode failed unless it ended because every AV arrived unharmed.
+        if self.config.reward.failure != 0.0 and self.ended and (truncated or scene.crashed[ag].any()):
             # The team's failure is the end of these agents' episode too: paid and not
             # bootstrapped, so that neither a time-out nor a partner's crash is free.
             rewards = rewards + self.config.reward.failure * cut_off
