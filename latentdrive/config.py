@@ -227,6 +227,7 @@ class ObservationConfig(Config):
     beta: float = Field(0.30, gt=0.0, description="β of eq. 13, dimensionless: slope of the log decay. With α=0.5 a vehicle 10 m/s faster or slower than the observer maps to 0.52, 40 m/s to 0.10, and beyond ~54 m/s to 0, so a stopped car stays visible to an observer at highway speed.")
     v0: float = Field(2.0, gt=0.0, description="v0 of eq. 13, m/s: below it a vehicle cell is 1. Default 1/α makes the map continuous at v0.")
     max_speed: float = Field(40.0, gt=0.0, description="Absolute speed mapped to 1 in the MV (mission vehicle) channel, m/s.")
+    route: float = Field(0.0, ge=0.0, le=1.0, description="Value drawn in the MV channel on the road the observer's route still takes (its current edge and the rest of its planned route, every lane of each edge), under its own footprint. 0, the default, is the paper's map, which does not show where the AV is going; any other value is an option that shows it, as a planner knows it.")
     # model_validate rather than the bare class keeps mypy (without the pydantic plugin)
     # from reading the fields' defaults as required constructor arguments.
     noise: NoiseConfig = Field(

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from enum import IntEnum
+from typing import TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
@@ -20,6 +21,7 @@ from numpy.typing import NDArray
 __all__ = ["Kind", "RoadRaster", "Scene", "rasterize_strips"]
 
 FloatArray = NDArray[np.float64]
+_Cell = TypeVar("_Cell", np.uint8, np.uint64)
 
 
 class Kind(IntEnum):
@@ -38,11 +40,15 @@ class RoadRaster:
             world y, column index with world x.
         origin: ``(2,)`` world (x, y) of the centre of cell ``[0, 0]``, metres.
         resolution: cell size, metres.
+        edges: ``(rows, cols)`` uint64 or None: bit ``e`` set where edge ``e`` of the
+            layout's lane graph (highway-env's graph order) is drivable. It is what a
+            route is drawn from (``ObservationConfig.route``); None where unknown.
     """
 
     mask: NDArray[np.uint8]
     origin: FloatArray
     resolution: float
+    edges: NDArray[np.uint64] | None = None
 
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, RoadRaster):
@@ -51,18 +57,30 @@ class RoadRaster:
             self.resolution == other.resolution
             and np.array_equal(self.origin, other.origin)
             and np.array_equal(self.mask, other.mask)
+            and (self.edges is None) == (other.edges is None)
+            and (self.edges is None or other.edges is None or np.array_equal(self.edges, other.edges))
         )
 
     __hash__ = None  # type: ignore[assignment]
 
     def sample(self, xy: FloatArray) -> NDArray[np.uint8]:
         """Drivable flag at world points ``xy`` of shape ``(..., 2)`` (nearest cell; 0 outside)."""
+        return self._sample(self.mask, xy)
+
+    def sample_edges(self, xy: FloatArray) -> NDArray[np.uint64]:
+        """Edge bits (:attr:`edges`) at world points ``xy`` of shape ``(..., 2)`` (nearest
+        cell; 0 outside, and everywhere when the raster has no edges)."""
+        if self.edges is None:
+            return np.zeros(xy.shape[:-1], dtype=np.uint64)
+        return self._sample(self.edges, xy)
+
+    def _sample(self, grid: NDArray[_Cell], xy: FloatArray) -> NDArray[_Cell]:
         idx = np.rint((xy - self.origin) / self.resolution).astype(np.int64)
         col, row = idx[..., 0], idx[..., 1]
-        rows, cols = self.mask.shape
+        rows, cols = grid.shape
         inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
-        out = np.zeros(xy.shape[:-1], dtype=np.uint8)
-        out[inside] = self.mask[row[inside], col[inside]]
+        out = np.zeros(xy.shape[:-1], dtype=grid.dtype)
+        out[inside] = grid[row[inside], col[inside]]
         return out
 
 
@@ -72,6 +90,7 @@ def rasterize_strips(
     half_widths: FloatArray,
     resolution: float = 0.5,
     margin: float = 5.0,
+    edges: NDArray[np.integer] | None = None,
 ) -> RoadRaster:
     """Rasterize lanes given as densely sampled centreline points into a :class:`RoadRaster`.
 
@@ -85,6 +104,8 @@ def rasterize_strips(
         half_widths: ``(P,)`` half lane width at each point, metres.
         resolution: raster cell size, metres.
         margin: empty border around the road, metres.
+        edges: ``(P,)`` the lane-graph edge id (0–63) of each sample; when given, the
+            raster's :attr:`RoadRaster.edges` marks each cell with the edges drawn on it.
     """
     centers = np.asarray(centers, dtype=np.float64)
     lo = centers.min(axis=0) - half_widths.max() - margin
@@ -99,7 +120,15 @@ def rasterize_strips(
     pts = (centers[:, None, :] + offsets).reshape(-1, 2)
     idx = np.rint((pts - lo) / resolution).astype(np.int64)
     mask[idx[:, 1], idx[:, 0]] = 1
-    return RoadRaster(mask=mask, origin=lo, resolution=float(resolution))
+    if edges is None:
+        return RoadRaster(mask=mask, origin=lo, resolution=float(resolution))
+    ids = np.asarray(edges, dtype=np.int64)
+    if ids.shape != (centers.shape[0],) or (ids.size and (ids.min() < 0 or ids.max() > 63)):
+        raise ValueError("edges must give one edge id in [0, 63] per centreline sample")
+    bits = np.zeros(shape, dtype=np.uint64)
+    cell_bits = np.repeat(np.left_shift(np.uint64(1), ids.astype(np.uint64)), unit.size)
+    np.bitwise_or.at(bits, (idx[:, 1], idx[:, 0]), cell_bits)
+    return RoadRaster(mask=mask, origin=lo, resolution=float(resolution), edges=bits)
 
 
 @dataclass(frozen=True, eq=False)
@@ -123,6 +152,9 @@ class Scene:
         time: simulated time since reset, seconds.
         arrived: ``(N,)`` bool, True for AVs that have completed their mission (all False
             when omitted).
+        route: ``(n_av,)`` uint64, agent order: the edges (bits, as in
+            :attr:`RoadRaster.edges`) of each AV's current lane and of the rest of its
+            planned route (all 0 when omitted).
     """
 
     position: FloatArray
@@ -138,11 +170,16 @@ class Scene:
     road: RoadRaster
     time: float = 0.0
     arrived: NDArray[np.bool_] | None = None
+    route: NDArray[np.uint64] | None = None
 
     def __post_init__(self) -> None:
         n = self.position.shape[0]
         if self.arrived is None:
             object.__setattr__(self, "arrived", np.zeros(n, dtype=bool))
+        route = np.zeros(self.agents.shape[0], dtype=np.uint64) if self.route is None else self.route
+        if route.shape != self.agents.shape or route.dtype != np.uint64:
+            raise ValueError(f"Scene.route must be uint64 ({self.agents.shape[0]},), got {route.dtype} {route.shape}")
+        object.__setattr__(self, "route", route)
         if self.position.shape != (n, 2):
             raise ValueError(f"Scene.position must be (N, 2), got {self.position.shape}")
         for name in ("heading", "speed", "frenet_speed", "length", "width", "kind", "mask", "crashed", "arrived"):
@@ -158,7 +195,7 @@ class Scene:
         return self.time == other.time and self.road == other.road and all(
             np.array_equal(getattr(self, f), getattr(other, f))
             for f in ("position", "heading", "speed", "frenet_speed", "length", "width",
-                      "kind", "mask", "crashed", "arrived", "agents")
+                      "kind", "mask", "crashed", "arrived", "agents", "route")
         )
 
     __hash__ = None  # type: ignore[assignment]

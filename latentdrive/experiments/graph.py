@@ -40,6 +40,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("train", "dice_weight"): 0.0,
     ("model",): {},
     ("reward", "failure"): 0.0,
+    ("observation", "route"): 0.0,
 }
 
 

@@ -40,6 +40,11 @@ class EvaluationSet:
         self.specs = resolve_specs(self.scenarios, specs)
         self.backend, self.seed_offset = backend, seed_offset
         self.observation = observation or {}
+        #: Policies (by name) that observe another map than ``observation``, e.g. runs
+        #: trained with and without an observation option. They play the same episodes:
+        #: sensor noise and traffic come from each episode's own streams, which no
+        #: observation setting but the noise levels changes.
+        self.observations: dict[str, dict[str, Any]] = {}
         #: The runs' reward weights (returns are reported under them; rates do not depend on them).
         self.reward = reward or {}
         #: Settings of the ``plan`` reference (None when it is not evaluated).
@@ -51,11 +56,14 @@ class EvaluationSet:
                 "seed_offset": self.seed_offset,
                 **({"planner": self.planner.model_dump()} if self.planner is not None else {})}
 
-    def env_overrides(self) -> dict[str, Any]:
-        return {k: v for k, v in (("observation", self.observation), ("reward", self.reward)) if v}
+    def env_overrides(self, name: str | None = None) -> dict[str, Any]:
+        """Env settings for policy ``name`` (its own observation where it has one)."""
+        observation = self.observations.get(name, self.observation) if name is not None else self.observation
+        return {k: v for k, v in (("observation", observation), ("reward", self.reward)) if v}
 
-    def run(self, make_policy: Callable[[], Policy], progress: Callable[[int], None] | None = None) -> list[EpisodeOutcome]:
-        kw = self.env_overrides()
+    def run(self, make_policy: Callable[[], Policy], progress: Callable[[int], None] | None = None,
+            name: str | None = None) -> list[EpisodeOutcome]:
+        kw = self.env_overrides(name)
         return evaluate_policy(make_policy, [self.specs[n] for n in self.scenarios], self.episodes, envs=self.envs, backend=self.backend,
                                seed_offset=self.seed_offset, progress=progress, **kw)
 
@@ -66,7 +74,7 @@ def policy_makers(runs: Sequence[str], references: Sequence[str], eval_set: Eval
     makers: dict[str, Callable[[], Policy]] = {}
     for run in runs:
         net, cfg = load_policy_network(run, device)
-        if eval_set.observation and cfg.observation.model_dump() != eval_set.observation:
+        if eval_set.observation and cfg.observation.model_dump() != eval_set.observations.get(run, eval_set.observation):
             raise ConfigError(f"{run}: trained on another observation config than the evaluation's")
         makers[run] = greedy_policy(net, device)
     reward = RewardConfig(**eval_set.reward)
@@ -82,7 +90,7 @@ def evaluate_many(makers: dict[str, Callable[[], Policy]], eval_set: EvaluationS
                   progress: Callable[[int], None] | None = None,
                   ) -> tuple[dict[str, PolicyReport], dict[str, list[EpisodeOutcome]]]:
     """Reports and raw outcomes of every policy on the same episodes."""
-    outcomes = {name: eval_set.run(make, progress) for name, make in makers.items()}
+    outcomes = {name: eval_set.run(make, progress, name) for name, make in makers.items()}
     return {name: policy_report(o) for name, o in outcomes.items()}, outcomes
 
 

@@ -135,8 +135,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if len(set(scenarios)) != len(scenarios):
         raise ConfigError(f"--scenarios repeats a name: {', '.join(scenarios)}")
     observations = [c["train"]["observation"] for c in configs]
-    if any(o != observations[0] for o in observations):
-        raise ConfigError("the runs use different observation configs; evaluate them separately")
     rewards = [c["train"].get("reward") for c in configs]
     # A name the first run trained on stands for the spec it stored (it needs no spec file
     # and no preset of today); --scenarios may name others, resolved as usual.
@@ -152,6 +150,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                              reward=rewards[0] if rewards and all(r == rewards[0] for r in rewards) else None,
                              planner=planner_config_from_args(args.overrides) if "plan" in references else None,
                              specs=stored)
+    eval_set.observations = {r: o for r, o in zip(runs, observations, strict=True) if o != observations[0]}
+    if eval_set.observations:
+        _say(f"note: {', '.join(eval_set.observations)} observe(s) another map than {runs[0]}; each run sees its "
+             "own on the same episodes, and the references see the first run's")
     if args.overrides and "plan" not in references:
         raise ConfigError("--set planner.* given, but the planner ('plan') is not evaluated")
     device = resolve_device(args.device)

@@ -8,7 +8,9 @@ One frame per observer is a ``(4, H, W)`` float32 image in [0, 1] with channels
   (paper eq. 13).
 - RL: the drivable area of the road layout.
 - MV: the observer's own footprint, valued with its absolute speed over
-  ``ObservationConfig.max_speed``.
+  ``ObservationConfig.max_speed``. With ``ObservationConfig.route`` > 0 (an option; the
+  paper's map has none) the road the observer's route still takes is drawn under it at
+  that value, from the raster's edge bits and the Scene's ``route``.
 
 Grid geometry (the observer's local frame): ``x`` points along the observer's heading,
 ``y`` to its right (the world convention of :mod:`latentdrive.scene`, where y grows to the
@@ -189,6 +191,13 @@ def render_frame(
     wx = ego_pos[:, 0, None, None] + cos_k[:, None, None] * xc - sin_k[:, None, None] * yc[:, None]
     wy = ego_pos[:, 1, None, None] + sin_k[:, None, None] * xc + cos_k[:, None, None] * yc[:, None]
     out[:, RL] = scene.road.sample(np.stack([wx, wy], axis=-1))
+    if cfg.route > 0.0:
+        # The route lies under the observer's footprint, which is drawn over it below.
+        route_of = np.zeros(n_veh, dtype=np.uint64)
+        assert scene.route is not None
+        route_of[scene.agents] = scene.route
+        on = (scene.road.sample_edges(np.stack([wx, wy], axis=-1)) & route_of[obs][:, None, None]) != 0
+        out[:, MV] = np.where(on, np.float32(cfg.route), np.float32(0.0))
 
     if n_veh == 0:
         return out
@@ -259,7 +268,11 @@ def render_frame(
     p_idx, r_idx, c_idx = np.nonzero(inside)
     plane = k_idx[p_idx] * 4 + channel[p_idx]
     flat = (plane * h + row[p_idx, r_idx]) * w + col[p_idx, c_idx]
-    np.maximum.at(out.reshape(-1), flat, value[p_idx])
+    own = self_pair[p_idx]
+    np.maximum.at(out.reshape(-1), flat[~own], value[p_idx][~own])
+    # An observer's own footprint replaces what lies under it (the route, when drawn):
+    # it is the only vehicle of its MV plane.
+    out.reshape(-1)[flat[own]] = value[p_idx][own]
     return out
 
 

@@ -29,7 +29,7 @@ from latentdrive.scenarios.spec import DriverParams, ScenarioError, ScenarioSpec
 from latentdrive.scene import Kind, Scene
 from latentdrive.sim.fast.network import get_network
 from latentdrive.sim.fast.placement import PlacementPlan
-from latentdrive.sim.roads import RoadHost, build_road, layout_raster
+from latentdrive.sim.roads import RoadHost, build_road, layout_edges, layout_raster
 
 __all__ = ["HighwayBackend", "ScenarioError"]
 
@@ -68,6 +68,7 @@ class HighwayBackend:
     def __init__(self, spec: ScenarioSpec) -> None:
         self.spec = spec
         self.raster = layout_raster(spec.layout, spec.lanes_count)
+        self._edges = layout_edges(spec.layout, spec.lanes_count)
         self._plan = PlacementPlan(spec, get_network(spec.layout, spec.lanes_count))
         self.road: Road | None = None
         self.avs: list[MDPVehicle] = []
@@ -163,7 +164,16 @@ class HighwayBackend:
             agents=agents,
             road=self.raster,
             time=self.time,
+            route=np.array([self._route_bits(v) for v in self.avs], dtype=np.uint64),
         )
+
+    def _route_bits(self, vehicle: MDPVehicle) -> np.uint64:
+        """``Scene.route`` of one AV: its lane's edge and the route highway-env has not
+        consumed yet (it drops an entry once the vehicle follows the road past it)."""
+        bits = np.uint64(0)
+        for key in (vehicle.lane_index, *(vehicle.route or ())):
+            bits |= np.uint64(1) << np.uint64(self._edges[(key[0], key[1])])
+        return bits
 
     # -- reference observation, for benchmarks ---------------------------------------
     def occupancy_grid(self, cfg: ObservationConfig) -> Callable[[], np.ndarray]:

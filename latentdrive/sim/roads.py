@@ -21,7 +21,7 @@ from highway_env.road.road import Road
 
 from latentdrive.scene import RoadRaster, rasterize_strips
 
-__all__ = ["RoadHost", "build_road", "layout_raster"]
+__all__ = ["RoadHost", "build_road", "layout_edges", "layout_raster"]
 
 # Road builders of highway-env, called on a small host object rather than on a constructed
 # env: constructing IntersectionEnv resets it, and its reset mutates IDMVehicle's class.
@@ -62,20 +62,36 @@ def build_road(layout: str, lanes_count: int, rng: np.random.Generator) -> Road:
 
 
 @cache
+def layout_edges(layout: str, lanes_count: int) -> dict[tuple[str, str], int]:
+    """Edge id of each ``(from, to)`` node pair of a layout's lane graph, in highway-env's
+    graph iteration order (the order :mod:`latentdrive.sim.fast.network` numbers them in)."""
+    graph = build_road(layout, lanes_count, np.random.default_rng(0)).network.graph
+    return {(a, b): e for e, (a, b) in enumerate((a, b) for a, tos in graph.items() for b in tos)}
+
+
+@cache
 def layout_raster(layout: str, lanes_count: int, resolution: float = 0.5) -> RoadRaster:
     """Drivable-area raster of a layout, computed once per (layout, lanes) and cached.
 
-    Every lane is sampled along its centreline every ``resolution/2`` metres; the samples
-    are handed to :func:`latentdrive.scene.rasterize_strips`.
+    Every lane is sampled along its centreline every ``resolution/2`` metres; the samples,
+    each with its lane's edge id (:func:`layout_edges`), are handed to
+    :func:`latentdrive.scene.rasterize_strips`, so the raster also marks which edges each
+    cell belongs to (what a route is drawn from).
     """
     road = build_road(layout, lanes_count, np.random.default_rng(0))
-    centers, headings, half = [], [], []
-    for lanes in (lanes for tos in road.network.graph.values() for lanes in tos.values()):
-        for lane in lanes:
-            s = np.arange(0.0, lane.length + 1e-9, resolution / 2)
-            centers.append(np.array([lane.position(si, 0.0) for si in s]))
-            headings.append(np.array([lane.heading_at(si) for si in s]))
-            half.append(np.array([lane.width_at(si) / 2 for si in s]))
-    raster = rasterize_strips(np.concatenate(centers), np.concatenate(headings), np.concatenate(half), resolution)
+    ids = layout_edges(layout, lanes_count)
+    centers, headings, half, edges = [], [], [], []
+    for a, tos in road.network.graph.items():
+        for b, lanes in tos.items():
+            for lane in lanes:
+                s = np.arange(0.0, lane.length + 1e-9, resolution / 2)
+                centers.append(np.array([lane.position(si, 0.0) for si in s]))
+                headings.append(np.array([lane.heading_at(si) for si in s]))
+                half.append(np.array([lane.width_at(si) / 2 for si in s]))
+                edges.append(np.full(s.size, ids[(a, b)]))
+    raster = rasterize_strips(np.concatenate(centers), np.concatenate(headings), np.concatenate(half), resolution,
+                              edges=np.concatenate(edges))
     raster.mask.flags.writeable = False
+    assert raster.edges is not None
+    raster.edges.flags.writeable = False
     return raster

@@ -396,3 +396,46 @@ def test_noise_draws_follow_the_documented_stream_order():
     np.testing.assert_array_equal(draws.heading, rng.standard_normal((3, 4)) * cfg.heading_std)
     np.testing.assert_array_equal(draws.speed, rng.standard_normal((3, 4)) * cfg.speed_std)
     np.testing.assert_array_equal(draws.missed, rng.random((3, 4)) < cfg.miss_prob)
+
+
+# --- the route option -------------------------------------------------------------------
+
+
+def _two_roads() -> RoadRaster:
+    """Edge 0: the road |y| <= 4 m; edge 1: a parallel road 8 m <= y <= 12 m."""
+    s = np.arange(-50.0, 300.0, 0.25)
+    centers = np.concatenate([np.stack([s, np.zeros_like(s)], -1), np.stack([s, np.full_like(s, 10.0)], -1)])
+    half = np.concatenate([np.full(s.shape, 4.0), np.full(s.shape, 2.0)])
+    edges = np.repeat([0, 1], s.size)
+    return rasterize_strips(centers, np.zeros(2 * s.size), half, edges=edges)
+
+
+def test_route_is_drawn_in_mv_on_the_route_edges_under_the_own_footprint():
+    road = _two_roads()
+    # Observer 2 m right of edge 0's centre line, at 4 m/s (MV footprint 0.1): rows 2..9
+    # lie on edge 0 (as in test_road_layout_channel), rows 14..15 (world y 8.5, 9.5) on
+    # edge 1; its footprint covers rows 7..8, columns 5..9.
+    base = _scene([{**EGO, "y": 2.0, "speed": 4.0}], [0], road)
+    cfg = CFG.model_copy(update={"route": 0.3})
+    footprint = _block(range(7, 9), range(5, 10))
+    for bits, rows in ((1 << 1, range(14, 16)), (1 << 0, range(2, 10)), (0b11, [*range(2, 10), 14, 15])):
+        scene = Scene(**{**base.__dict__, "route": np.array([bits], dtype=np.uint64)})
+        mv = render_frame(scene, scene.agents, cfg)[0, MV]
+        route_cells = _block(range(16), range(32)) & {(i, j) for i in rows for j in range(32)}
+        assert _cells(mv == np.float32(0.3)) == route_cells - footprint
+        assert _cells(mv > 0) == route_cells | footprint
+        # The footprint is the AV's speed even where it is lower than the route's value.
+        assert all(mv[i, j] == np.float32(0.1) for i, j in footprint)
+    # route = 0 (the default) draws no route, whatever the Scene's bits.
+    scene = Scene(**{**base.__dict__, "route": np.array([0b11], dtype=np.uint64)})
+    assert _cells(render_frame(scene, scene.agents, CFG)[0, MV]) == footprint
+    np.testing.assert_array_equal(render_frame(scene, scene.agents, CFG), render_frame(base, base.agents, CFG))
+
+
+def test_route_bits_are_checked_and_default_to_none():
+    scene = _scene([EGO, {"x": 110.0}], [0])
+    assert scene.route is not None and scene.route.dtype == np.uint64 and not scene.route.any()
+    with pytest.raises(ValueError, match=r"Scene\.route"):
+        Scene(**{**scene.__dict__, "route": np.array([1, 2], dtype=np.uint64)})
+    with pytest.raises(ValueError, match="edge id in"):
+        rasterize_strips(np.zeros((2, 2)), np.zeros(2), np.ones(2), edges=np.array([0, 64]))

@@ -275,3 +275,23 @@ def test_train_policy_learner_dagger_trains_an_imitation_run(tmp_path, capsys):
                  "--set", "imitation.planner.rounds=1", *TINY_SETS]) == 0
     assert json.loads((run / "config.json").read_text())["train"]["learner"] == "dagger"
     assert "done: " in capsys.readouterr().out
+
+
+def test_runs_observing_different_maps_are_compared_on_the_same_episodes(tmp_path, capsys, raw_run):
+    # The same weights, once told to see the route (observation.route): each run is evaluated
+    # with its own map, exactly as when it is evaluated alone.
+    routed = tmp_path / "routed"
+    shutil.copytree(raw_run, routed)
+    doc = json.loads((routed / "config.json").read_text())
+    doc["train"]["observation"]["route"] = 0.5
+    (routed / "config.json").write_text(json.dumps(doc))
+    common = ["--episodes", "6", "--envs", "3", "--scenarios", "intersection,roundabout", "-q"]
+    both, alone_a, alone_b = tmp_path / "both.json", tmp_path / "a.json", tmp_path / "b.json"
+    assert main(["evaluate", str(raw_run), "--compare", str(routed), "--json", str(both), *common]) == 0
+    assert "observe(s) another map" in capsys.readouterr().err
+    assert main(["evaluate", str(raw_run), "--json", str(alone_a), *common]) == 0
+    assert main(["evaluate", str(routed), "--json", str(alone_b), *common]) == 0
+    joint = json.loads(both.read_text())["policies"]
+    assert joint[str(raw_run)] == json.loads(alone_a.read_text())["policies"][str(raw_run)]
+    assert joint[str(routed)] == json.loads(alone_b.read_text())["policies"][str(routed)]
+    assert json.loads(both.read_text())["compare"]["b"] == str(routed)

@@ -26,7 +26,7 @@ from latentdrive.sim.fast.branch import Branches, BranchPart, take_rows
 from latentdrive.sim.fast.krender import GRID_ROWS, render_rows
 from latentdrive.sim.fast.kreset import PF_ROWS, PI_ROWS, load_rows
 from latentdrive.sim.fast.kstep import step_envs
-from latentdrive.sim.fast.network import Network, get_network
+from latentdrive.sim.fast.network import EDGE, Network, get_network
 from latentdrive.sim.fast.placement import PlacementPlan
 from latentdrive.sim.fast.scratch import Scratch, make_scratch
 from latentdrive.sim.fast.state import (
@@ -40,6 +40,8 @@ from latentdrive.sim.fast.state import (
     LANE,
     N_AV,
     N_VEH,
+    ROUTE_HEAD,
+    ROUTE_LEN,
     SPEED,
     TIME,
     VLENGTH,
@@ -56,6 +58,20 @@ from latentdrive.sim.roads import layout_raster
 __all__ = ["FastBatch"]
 
 assert (int(Kind.AV), int(Kind.HV)) == (AV, HV)
+
+
+def route_bits(net: Network, st: State, rows: NDArray[np.int64], width: int) -> NDArray[np.uint64]:
+    """``(len(rows), width)`` uint64: for vehicle slot ``a`` of each state row, the bits
+    (:attr:`latentdrive.scene.RoadRaster.edges`) of its current lane's edge and of the
+    route entries it has not passed (``Scene.route``)."""
+    one = np.uint64(1)
+    lane = np.clip(st.i[LANE][rows, :width], 0, net.n_lanes - 1)  # slots beyond a row's vehicles hold no lane
+    bits = np.left_shift(one, net.table.ints[EDGE][lane].astype(np.uint64))
+    route = st.route[rows, :width]  # (K, A, R) edge ids, -1 beyond the route
+    q = np.arange(route.shape[2])
+    ahead = (q >= st.i[ROUTE_HEAD][rows, :width, None]) & (q < st.i[ROUTE_LEN][rows, :width, None]) & (route >= 0)
+    shifted = np.left_shift(one, np.where(ahead, route, 0).astype(np.uint64))
+    return bits | np.bitwise_or.reduce(np.where(ahead, shifted, np.uint64(0)), axis=2)
 
 
 @dataclass
@@ -223,20 +239,20 @@ class FastBatch:
         for i in ids:
             g, r = self._where[i]
             if g not in snaps:
-                snaps[g] = self._snapshot(self._groups[g].state)
-            f, pos, kind, flags, n_veh, n_av, time = snaps[g]
+                snaps[g] = self._snapshot(self._groups[g].network, self._groups[g].state)
+            f, pos, kind, flags, n_veh, n_av, time, route = snaps[g]
             n = int(n_veh[r])
             out.append(Scene(
                 position=pos[r, :n], heading=f[0, r, :n], speed=f[1, r, :n], frenet_speed=f[2, r, :n],
                 length=f[3, r, :n], width=f[4, r, :n], kind=kind[r, :n], mask=np.ones(n, dtype=bool),
                 crashed=flags[0, r, :n], arrived=flags[1, r, :n],
                 agents=np.arange(int(n_av[r]), dtype=np.int64), road=self._groups[g].raster,
-                time=float(time[r]),
+                time=float(time[r]), route=route[r, : int(n_av[r])].copy(),
             ))
         return out
 
     @staticmethod
-    def _snapshot(st: State) -> tuple[np.ndarray, ...]:
+    def _snapshot(net: Network, st: State) -> tuple[np.ndarray, ...]:
         return (
             st.f[[HEADING, SPEED, FRENET_SPEED, VLENGTH, VWIDTH]],
             np.stack((st.f[X], st.f[Y]), axis=-1),
@@ -245,6 +261,7 @@ class FastBatch:
             st.env_i[N_VEH].copy(),
             st.env_i[N_AV].copy(),
             st.env_f[TIME].copy(),
+            route_bits(net, st, np.arange(st.f.shape[1]), int(st.env_i[N_AV].max(initial=0))),
         )
 
     def render(self, env_ids: Sequence[int], cfg: ObservationConfig, noise: Sequence[SensorNoise] | None,
@@ -297,8 +314,11 @@ class FastBatch:
                     d_speed[j, :n_obs, :n_veh] = noise[k].speed
                     missed[j, :n_obs, :n_veh] = noise[k].missed
             raster = group.raster
+            assert raster.edges is not None
+            route = route_bits(group.network, st, rows, width) if cfg.route > 0 else np.zeros((len(ks), width), np.uint64)
             render_rows(st.f, st.i[KIND], st.env_i, rows, slots, seen[slots], noise is not None,
-                        d_pos, d_head, d_speed, missed, raster.mask, raster.origin, raster.resolution, grid, out)
+                        d_pos, d_head, d_speed, missed, raster.mask, raster.origin, raster.resolution,
+                        raster.edges, route, grid, out)
         return out
 
     def lane_keys(self, i: int) -> list[tuple[str, str, int]]:

@@ -43,8 +43,8 @@ from latentdrive.sim.fast.state import (
 __all__ = ["GRID_ROWS", "render_rows"]
 
 # Entries of the ``grid`` argument: ObservationConfig fields, in metres, m/s and 1/(m/s).
-GRID_ROWS = ("behind", "resolution", "alpha", "beta", "v0", "max_speed")
-BEHIND, RES, ALPHA, BETA, V0, MAX_SPEED = range(len(GRID_ROWS))
+GRID_ROWS = ("behind", "resolution", "alpha", "beta", "v0", "max_speed", "route")
+BEHIND, RES, ALPHA, BETA, V0, MAX_SPEED, ROUTE = range(len(GRID_ROWS))
 
 _TINY = float(np.finfo(np.float64).tiny)
 
@@ -75,6 +75,8 @@ def render_rows(
     road: NDArray[np.uint8],
     road_origin: NDArray[np.float64],
     road_res: float,
+    road_edges: NDArray[np.uint64],
+    route: NDArray[np.uint64],
     grid: NDArray[np.float64],
     out: NDArray[np.float32],
 ) -> None:
@@ -90,13 +92,17 @@ def render_rows(
             m/s and bool: per observer and vehicle slot, the offsets of position, heading
             and Frenet speed and whether the vehicle is missed. The observer's own slot
             is never perturbed.
-        road, road_origin, road_res: the layout's raster (``RoadRaster`` fields).
+        road, road_origin, road_res, road_edges: the layout's raster (``RoadRaster``
+            fields; ``road_edges`` is only read when ``grid[ROUTE]`` > 0).
+        route: ``(K, A)`` uint64 edge bits of each observer's route (``Scene.route``),
+            drawn in MV at ``grid[ROUTE]`` where that is > 0.
         grid: ``(len(GRID_ROWS),)`` the observation's geometry and eq. 13 coefficients.
         out: ``(B', A', 4, H, W)`` float32; each rendered frame is overwritten whole.
     """
     h, w = out.shape[3], out.shape[4]
     behind, res = grid[BEHIND], grid[RES]
     alpha, beta, v0, max_speed = grid[ALPHA], grid[BETA], grid[V0], grid[MAX_SPEED]
+    route_value = np.float32(grid[ROUTE])
     half_h = 0.5 * h * res
     ahead = w * res - behind
     n_rows, n_cols = road.shape[0], road.shape[1]
@@ -124,6 +130,8 @@ def render_rows(
                     drivable = 0.0
                     if 0.0 <= row < n_rows and 0.0 <= col < n_cols:
                         drivable = road[int(row), int(col)]
+                        if route_value > 0.0 and road_edges[int(row), int(col)] & route[k, a] != 0:
+                            out[o, a, MV_CHANNEL, i, j] = route_value
                     out[o, a, RL_CHANNEL, i, j] = drivable
             ego_fs = f[FRENET_SPEED, b, a]
             for v in range(env_i[N_VEH, b]):
@@ -164,5 +172,6 @@ def render_rows(
                         u = cos_r * dx + sin_r * dy
                         t = cos_r * dy - sin_r * dx
                         if -half_len <= u < half_len and -half_wid <= t < half_wid:
-                            if value > out[o, a, channel, r, c]:
+                            # The own footprint replaces the route under it.
+                            if channel == MV_CHANNEL or value > out[o, a, channel, r, c]:
                                 out[o, a, channel, r, c] = value

@@ -47,12 +47,14 @@ def _reference(batch, ids, cfg, noise, observing):
     noisy=st.booleans(),
     geometry=st.sampled_from([(16, 32, 1.5, 16.0), (32, 64, 1.5, 32.0), (24, 40, 0.75, 5.0), (12, 20, 3.0, 0.0)]),
     loud=st.booleans(),
+    route=st.sampled_from([0.0, 0.0, 0.3]),
 )
-def test_compiled_frames_match_the_reference_within_the_dataset_quantum(name, seed, steps, noisy, geometry, loud):
+def test_compiled_frames_match_the_reference_within_the_dataset_quantum(name, seed, steps, noisy, geometry, loud,
+                                                                        route):
     h, w, res, behind = geometry
     noise = {"position_std": 3.0, "heading_std": 0.5, "speed_std": 4.0, "miss_prob": 0.3} if loud else {}
     cfg = ObservationConfig.model_validate({"height": h, "width": w, "resolution": res, "behind": behind,
-                                            "noise": noise})
+                                            "noise": noise, "route": route})
     batch = _batch(name)
     batch.reset([seed, seed + 1])
     script = np.random.default_rng(seed)
