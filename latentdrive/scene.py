@@ -153,8 +153,8 @@ class Scene:
         arrived: ``(N,)`` bool, True for AVs that have completed their mission (all False
             when omitted).
         route: ``(n_av,)`` uint64, agent order: the edges (bits, as in
-            :attr:`RoadRaster.edges`) of each AV's current lane and of the rest of its
-            planned route (all 0 when omitted).
+            :attr:`RoadRaster.edges`) of the lane each AV steers along and of the rest of
+            its planned route (all 0 when omitted).
     """
 
     position: FloatArray

@@ -81,11 +81,22 @@ def existing_manifest(root: Path, fresh: dict[str, Any]) -> dict[str, Any] | Non
             f"{root}: holds a dataset of config {manifest['config_hash']}, not this config's "
             f"{fresh['config_hash']}; rerun with the same settings to resume, or use another directory")
     for key in ("scenarios", "env_configs", "sample_shape", "units"):
-        if manifest[key] != fresh[key]:
+        if _resolved(key, manifest[key]) != fresh[key]:
             raise DatasetError(
                 f"{root}: the same config now resolves to different {key} than when the "
                 "dataset was collected (scenario presets changed?); use another directory")
     return manifest
+
+
+def _resolved(key: str, value: Any) -> Any:
+    """A manifest entry as today's code resolves it: env configs written before a setting
+    existed gain its default (which leaves the data unchanged), so they still match."""
+    if key != "env_configs" or not isinstance(value, list):
+        return value
+    try:
+        return [validate(EnvConfig, c).model_dump(mode="json") for c in value]
+    except ConfigError:
+        return value
 
 
 def dataset_specs(out_dir: str | Path) -> dict[str, ScenarioSpec]:

@@ -152,8 +152,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                              specs=stored)
     eval_set.observations = {r: o for r, o in zip(runs, observations, strict=True) if o != observations[0]}
     if eval_set.observations:
-        _say(f"note: {', '.join(eval_set.observations)} observe(s) another map than {runs[0]}; each run sees its "
-             "own on the same episodes, and the references see the first run's")
+        _say(f"note: the runs observe different maps ({', '.join(eval_set.observations)} not as {runs[0]}); each "
+             f"plays the same episodes through its own, and the references see {runs[0]}'s")
     if args.overrides and "plan" not in references:
         raise ConfigError("--set planner.* given, but the planner ('plan') is not evaluated")
     device = resolve_device(args.device)

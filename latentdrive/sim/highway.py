@@ -168,10 +168,11 @@ class HighwayBackend:
         )
 
     def _route_bits(self, vehicle: MDPVehicle) -> np.uint64:
-        """``Scene.route`` of one AV: its lane's edge and the route highway-env has not
-        consumed yet (it drops an entry once the vehicle follows the road past it)."""
+        """``Scene.route`` of one AV: the edge of the lane it steers along and the route
+        highway-env has not consumed yet (it drops an entry once the vehicle follows the
+        road past it)."""
         bits = np.uint64(0)
-        for key in (vehicle.lane_index, *(vehicle.route or ())):
+        for key in (vehicle.target_lane_index, *(vehicle.route or ())):
             bits |= np.uint64(1) << np.uint64(self._edges[(key[0], key[1])])
         return bits
 

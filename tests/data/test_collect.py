@@ -143,6 +143,23 @@ def test_resume_after_an_interrupted_write(dataset_copy: Path) -> None:
     assert content(dataset_copy) == before
 
 
+def test_a_dataset_collected_before_later_settings_existed_still_resumes(dataset_copy: Path) -> None:
+    # Regression: a manifest written before observation.route and reward.failure existed
+    # lacks them; their defaults change no data, so the collection resumes.
+    before = content(dataset_copy)
+    m = manifest(dataset_copy)
+    for env in m["env_configs"]:
+        del env["observation"]["route"], env["reward"]["failure"]
+    (dataset_copy / MANIFEST).write_text(json.dumps(m))
+    summary = collect(tiny_config(), dataset_copy, progress=False)
+    assert summary.shards_written == 0 and summary.shards_skipped == len(before)
+    # A setting that does change the data still refuses the folder.
+    m["env_configs"][0]["observation"]["route"] = 1.0
+    (dataset_copy / MANIFEST).write_text(json.dumps(m))
+    with pytest.raises(DatasetError, match="different env_configs"):
+        collect(tiny_config(), dataset_copy, progress=False)
+
+
 def test_resume_redoes_a_shard_whose_file_changed(dataset_copy: Path) -> None:
     before = content(dataset_copy)
     victim = sorted(before)[0]

@@ -288,7 +288,7 @@ def test_runs_observing_different_maps_are_compared_on_the_same_episodes(tmp_pat
     common = ["--episodes", "6", "--envs", "3", "--scenarios", "intersection,roundabout", "-q"]
     both, alone_a, alone_b = tmp_path / "both.json", tmp_path / "a.json", tmp_path / "b.json"
     assert main(["evaluate", str(raw_run), "--compare", str(routed), "--json", str(both), *common]) == 0
-    assert "observe(s) another map" in capsys.readouterr().err
+    assert "the runs observe different maps" in capsys.readouterr().err
     assert main(["evaluate", str(raw_run), "--json", str(alone_a), *common]) == 0
     assert main(["evaluate", str(routed), "--json", str(alone_b), *common]) == 0
     joint = json.loads(both.read_text())["policies"]

@@ -40,26 +40,36 @@ def test_both_backends_report_the_same_route_along_an_episode(name):
 
 
 @pytest.mark.parametrize("name", ["roundabout", "intersection"])
-def test_route_leads_from_the_current_edge_to_the_goal(name):
+def test_route_leads_from_the_steered_edge_to_the_goal_all_episode_long(name):
+    # Regression: the closest lane inside a junction can be another connector than the
+    # route's; the route is drawn from the lane the AV steers along.
     spec = get_spec(name)
     keys = list(layout_edges(spec.layout, spec.lanes_count))
-    batch = FastBatch([spec] * 4)
-    scenes = batch.reset([3, 4, 5, 6])
-    for i, scene in enumerate(scenes):
-        lanes, goals = batch.lane_keys(i), batch.goal_nodes(i)
-        assert scene.route is not None
-        for k, agent in enumerate(scene.agents):
-            edges = _edges(scene.route[k], keys)
-            current = lanes[int(agent)][:2]
-            assert current in edges
-            # The edges chain from the current one to one that ends at a goal node.
-            node, chain = current[1], {current}
-            while (nxt := [e for e in edges - chain if e[0] == node]):
-                assert len(nxt) == 1
-                chain.add(nxt[0])
-                node = nxt[0][1]
-            assert chain == edges
-            assert node in goals[k], (node, goals[k])
+    batch = FastBatch([spec] * 8)
+    scenes = batch.reset(list(range(3, 11)))
+    script = np.random.default_rng(0)
+    checked = 0
+    for _ in range(spec.max_steps):
+        for i, scene in enumerate(scenes):
+            goals = batch.goal_nodes(i)
+            assert scene.route is not None
+            for k in range(scene.n_agents):
+                if scene.crashed[k] or scene.arrived is None or scene.arrived[k]:
+                    continue
+                edges = _edges(scene.route[k], keys)
+                # The edges chain, one successor each, from a start edge to a goal node.
+                starts = [e for e in edges if not any(f[1] == e[0] for f in edges)]
+                assert len(starts) == 1, edges
+                node, chain = starts[0][1], {starts[0]}
+                while nxt := [e for e in edges - chain if e[0] == node]:
+                    assert len(nxt) == 1
+                    chain.add(nxt[0])
+                    node = nxt[0][1]
+                assert chain == edges
+                assert node in goals[k], (node, goals[k])
+                checked += 1
+        scenes = batch.step(script.integers(0, 5, (8, spec.n_av)))
+    assert checked > 100
 
 
 def test_an_av_without_a_planned_route_has_only_its_current_edge():

@@ -43,6 +43,7 @@ from latentdrive.sim.fast.state import (
     ROUTE_HEAD,
     ROUTE_LEN,
     SPEED,
+    TARGET,
     TIME,
     VLENGTH,
     VWIDTH,
@@ -62,10 +63,12 @@ assert (int(Kind.AV), int(Kind.HV)) == (AV, HV)
 
 def route_bits(net: Network, st: State, rows: NDArray[np.int64], width: int) -> NDArray[np.uint64]:
     """``(len(rows), width)`` uint64: for vehicle slot ``a`` of each state row, the bits
-    (:attr:`latentdrive.scene.RoadRaster.edges`) of its current lane's edge and of the
-    route entries it has not passed (``Scene.route``)."""
+    (:attr:`latentdrive.scene.RoadRaster.edges`) of the edge of the lane it steers along and
+    of the route entries it has not passed (``Scene.route``)."""
     one = np.uint64(1)
-    lane = np.clip(st.i[LANE][rows, :width], 0, net.n_lanes - 1)  # slots beyond a row's vehicles hold no lane
+    # The target lane, not the closest one: inside a junction the closest lane can be
+    # another connector than the one the route takes.
+    lane = np.clip(st.i[TARGET][rows, :width], 0, net.n_lanes - 1)  # slots beyond a row's vehicles hold no lane
     bits = np.left_shift(one, net.table.ints[EDGE][lane].astype(np.uint64))
     route = st.route[rows, :width]  # (K, A, R) edge ids, -1 beyond the route
     q = np.arange(route.shape[2])
