@@ -33,7 +33,8 @@ class EvaluationSet:
 
     def __init__(self, scenarios: Sequence[str], episodes: int, envs: int, backend: str, seed_offset: int,
                  observation: dict[str, Any] | None = None, reward: dict[str, Any] | None = None,
-                 planner: PlannerConfig | None = None, specs: Mapping[str, ScenarioSpec] | None = None) -> None:
+                 planner: PlannerConfig | None = None, specs: Mapping[str, ScenarioSpec] | None = None,
+                 observations: Mapping[str, dict[str, Any]] | None = None) -> None:
         self.scenarios, self.episodes, self.envs = list(scenarios), episodes, min(envs, episodes)
         #: The spec each scenario name stands for (a run's stored copies, else the preset or
         #: spec file the name gives), resolved once so that every policy meets the same ones.
@@ -44,7 +45,7 @@ class EvaluationSet:
         #: trained with and without an observation option. They play the same episodes:
         #: sensor noise and traffic come from each episode's own streams, which no
         #: observation setting but the noise levels changes.
-        self.observations: dict[str, dict[str, Any]] = {}
+        self.observations: dict[str, dict[str, Any]] = dict(observations or {})
         #: The runs' reward weights (returns are reported under them; rates do not depend on them).
         self.reward = reward or {}
         #: Settings of the ``plan`` reference (None when it is not evaluated).

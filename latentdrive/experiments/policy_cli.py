@@ -149,8 +149,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                              observation=observations[0] if observations else None,
                              reward=rewards[0] if rewards and all(r == rewards[0] for r in rewards) else None,
                              planner=planner_config_from_args(args.overrides) if "plan" in references else None,
-                             specs=stored)
-    eval_set.observations = {r: o for r, o in zip(runs, observations, strict=True) if o != observations[0]}
+                             specs=stored,
+                             observations={r: o for r, o in zip(runs, observations, strict=True) if o != observations[0]})
     if eval_set.observations:
         _say(f"note: the runs observe different maps ({', '.join(eval_set.observations)} not as {runs[0]}); each "
              f"plays the same episodes through its own, and the references see {runs[0]}'s")

@@ -68,7 +68,7 @@ class HighwayBackend:
     def __init__(self, spec: ScenarioSpec) -> None:
         self.spec = spec
         self.raster = layout_raster(spec.layout, spec.lanes_count)
-        self._edges = layout_edges(spec.layout, spec.lanes_count)
+        self._edges = layout_edges(spec.layout, spec.lanes_count)  # the raster's edge ids
         self._plan = PlacementPlan(spec, get_network(spec.layout, spec.lanes_count))
         self.road: Road | None = None
         self.avs: list[MDPVehicle] = []

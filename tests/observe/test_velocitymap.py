@@ -432,7 +432,7 @@ def test_route_is_drawn_in_mv_on_the_route_edges_under_the_own_footprint():
     np.testing.assert_array_equal(render_frame(scene, scene.agents, CFG), render_frame(base, base.agents, CFG))
 
 
-def test_route_bits_are_checked_and_default_to_none():
+def test_route_bits_are_checked_and_default_to_zero():
     scene = _scene([EGO, {"x": 110.0}], [0])
     assert scene.route is not None and scene.route.dtype == np.uint64 and not scene.route.any()
     with pytest.raises(ValueError, match=r"Scene\.route"):

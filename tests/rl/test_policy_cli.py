@@ -277,9 +277,19 @@ def test_train_policy_learner_dagger_trains_an_imitation_run(tmp_path, capsys):
     assert "done: " in capsys.readouterr().out
 
 
-def test_runs_observing_different_maps_are_compared_on_the_same_episodes(tmp_path, capsys, raw_run):
+def test_runs_observing_different_maps_are_compared_on_the_same_episodes(tmp_path, capsys, raw_run, monkeypatch):
     # The same weights, once told to see the route (observation.route): each run is evaluated
     # with its own map, exactly as when it is evaluated alone.
+    from latentdrive.experiments import policy as policy_module
+
+    seen = []
+    real = policy_module.evaluate_policy
+
+    def spy(*args, **kw):
+        seen.append(kw["observation"]["route"])
+        return real(*args, **kw)
+
+    monkeypatch.setattr(policy_module, "evaluate_policy", spy)
     routed = tmp_path / "routed"
     shutil.copytree(raw_run, routed)
     doc = json.loads((routed / "config.json").read_text())
@@ -289,6 +299,7 @@ def test_runs_observing_different_maps_are_compared_on_the_same_episodes(tmp_pat
     both, alone_a, alone_b = tmp_path / "both.json", tmp_path / "a.json", tmp_path / "b.json"
     assert main(["evaluate", str(raw_run), "--compare", str(routed), "--json", str(both), *common]) == 0
     assert "the runs observe different maps" in capsys.readouterr().err
+    assert seen[:2] == [0.0, 0.5] and set(seen[2:]) <= {0.0}  # each run its own map; references the first's
     assert main(["evaluate", str(raw_run), "--json", str(alone_a), *common]) == 0
     assert main(["evaluate", str(routed), "--json", str(alone_b), *common]) == 0
     joint = json.loads(both.read_text())["policies"]

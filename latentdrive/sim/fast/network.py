@@ -24,7 +24,7 @@ from highway_env.road.regulation import RegulatedRoad
 from highway_env.vehicle.objects import Landmark, Obstacle
 from numpy.typing import NDArray
 
-from latentdrive.sim.roads import build_road
+from latentdrive.sim.roads import build_road, layout_edges
 
 __all__ = ["CIRCULAR", "GEO_ROWS", "INT_ROWS", "SINE", "STRAIGHT", "LaneTable", "Network", "get_network"]
 
@@ -232,8 +232,11 @@ def get_network(layout: str, lanes_count: int) -> Network:
     boxes: list[tuple[FArr, FArr]] = []
     edge_of, index_in_edge, edge_first, edge_n = [], [], [], []
     priority, forbidden = [], []
+    # Edge ids are the raster's (layout_edges): graph order, as the loops below visit them.
+    edge_ids = layout_edges(layout, lanes_count)
     for a, tos in graph.items():
         for b, lanes in tos.items():
+            assert edge_ids[(a, b)] == len(edge_keys)
             edge_first.append(len(rows))
             edge_n.append(len(lanes))
             for i, lane in enumerate(lanes):

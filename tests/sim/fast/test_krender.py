@@ -47,7 +47,7 @@ def _reference(batch, ids, cfg, noise, observing):
     noisy=st.booleans(),
     geometry=st.sampled_from([(16, 32, 1.5, 16.0), (32, 64, 1.5, 32.0), (24, 40, 0.75, 5.0), (12, 20, 3.0, 0.0)]),
     loud=st.booleans(),
-    route=st.sampled_from([0.0, 0.0, 0.3]),
+    route=st.sampled_from([0.0, 0.0, 0.3, 1.0]),
 )
 def test_compiled_frames_match_the_reference_within_the_dataset_quantum(name, seed, steps, noisy, geometry, loud,
                                                                         route):
