@@ -306,3 +306,18 @@ def test_runs_observing_different_maps_are_compared_on_the_same_episodes(tmp_pat
     assert joint[str(raw_run)] == json.loads(alone_a.read_text())["policies"][str(raw_run)]
     assert joint[str(routed)] == json.loads(alone_b.read_text())["policies"][str(routed)]
     assert json.loads(both.read_text())["compare"]["b"] == str(routed)
+
+
+def test_the_actions_script_reports_the_runs_own_driving(raw_run, capsys):
+    import runpy
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "scripts" / "actions.py"
+    main_ = runpy.run_path(str(script), run_name="actions")["main"]
+    assert main_([str(raw_run), "intersection", "--decisions", "30", "--envs", "2"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    n = int(out[0].split(": ")[1].split()[0])
+    assert n >= 30
+    shares = [float(x) for x in out[1].split()[3::2]]
+    assert len(shares) == 5 and abs(sum(shares) - 1.0) < 1e-3
+    assert out[3].startswith("best - second  median ")
