@@ -29,6 +29,7 @@ import math
 import time
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -86,6 +87,7 @@ def train_bnn(
     resume: bool = False,
     progress: bool = True,
     steps_per_epoch: int | None = None,
+    observation: dict[str, Any] | None = None,
 ) -> dict[str, float]:
     """Train a :class:`BottleneckNetwork` and return the final epoch's metrics.
 
@@ -103,6 +105,11 @@ def train_bnn(
     After each validation the weights are written to ``run_dir/best.safetensors`` when
     they score best so far (:func:`validation_score`); without validation, after every
     epoch.
+
+    ``observation``, the dump of the :class:`~latentdrive.config.ObservationConfig` the
+    training maps were drawn with, is recorded with the run's configs (``config.json``
+    and the checkpoints), so that a policy reading the code can check that its own maps
+    are drawn the same way (:func:`latentdrive.rl.policy.encoder_config`).
 
     ``resume=True`` continues from ``run_dir/checkpoint.safetensors`` (a fresh start when
     there is none); the model config and all training settings except the epoch counts,
@@ -131,7 +138,7 @@ def train_bnn(
         if steps_per_epoch < 1:
             raise ValueError("train_batches_fn(0) yielded no batches")
         return _train(cfg, model_cfg, train_batches_fn, val_batches_fn, run, resume, progress,
-                      steps_per_epoch)
+                      steps_per_epoch, observation)
 
 
 def _capped(batches_fn: Callable[[int], Iterable[BNNBatch]], steps: int, epoch: int) -> Iterable[BNNBatch]:
@@ -168,6 +175,7 @@ def _train(
     resume: bool,
     progress: bool,
     steps_per_epoch: int,
+    observation: dict[str, Any] | None,
 ) -> dict[str, float]:
     ckpt = run / CHECKPOINT_NAME
     total_steps = steps_per_epoch * cfg.total_epochs
@@ -213,6 +221,8 @@ def _train(
             "model_hash": config_hash(model_cfg),
             "train_hash": config_hash(cfg),
         }
+        if observation is not None:
+            configs["observation"] = observation
         atomic_write_text(run / CONFIG_NAME, json.dumps(configs, indent=2, sort_keys=True) + "\n")
         log = metrics_log(run, step if resumed else None, logged)
         if device.type == "cuda":

@@ -114,6 +114,15 @@ class ShardDataset:
         return [s.name for s in self._shards]
 
     @property
+    def observation(self) -> dict[str, Any] | None:
+        """The observation settings (an :class:`~latentdrive.config.ObservationConfig`
+        dump, as the manifest's ``env_configs`` hold it) every scenario's maps were drawn
+        with; None when they differ between scenarios."""
+        dumps = [e.get("observation") for e in self.manifest["env_configs"]]
+        first = dumps[0] if dumps else None
+        return first if isinstance(first, dict) and all(d == first for d in dumps) else None
+
+    @property
     def episode_ids(self) -> IntArray:
         """``(n_episodes,)`` sorted global episode ids."""
         return np.array(sorted(self._episode_scenario), dtype=np.int64)

@@ -187,7 +187,7 @@ def train_on_dataset(
         # Every batch but the last is full (ShardDataset.batches), mixed or not.
         steps = math.ceil(ds.num_samples(train_ids) / train_cfg.batch_size)
         return train_bnn(train_cfg, model_cfg, train_fn, val_fn, run, resume=resume, progress=progress,
-                         steps_per_epoch=steps)
+                         steps_per_epoch=steps, observation=ds.observation)
 
 
 def _model_config(latent_dim: int, channels: tuple[int, ...], model: dict[str, Any] | None,

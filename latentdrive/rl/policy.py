@@ -20,7 +20,7 @@ from numpy.typing import NDArray
 from latentdrive.actions import N_ACTIONS
 from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
 from latentdrive.bnn.train import load_trained_bottleneck
-from latentdrive.config import ConfigError, config_hash, validate
+from latentdrive.config import ConfigError, ObservationConfig, config_hash, validate
 from latentdrive.fileio import read_json
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
@@ -59,6 +59,8 @@ def encoder_config(cfg: PolicyTrainConfig) -> BottleneckConfig | None:
         if not isinstance(saved, dict) or "model" not in saved:
             raise CheckpointError(f"{ckpt}: not a BNN checkpoint (no model config)")
         enc = validate(BottleneckConfig, saved["model"])
+        if cfg.mode == "latent" and isinstance(saved.get("observation"), dict):
+            _check_bnn_maps(cfg, ckpt, saved["observation"])
     else:
         enc = BottleneckConfig.for_observation(cfg.observation)
     want = cfg.observation.shape
@@ -66,6 +68,28 @@ def encoder_config(cfg: PolicyTrainConfig) -> BottleneckConfig | None:
         raise ConfigError(f"the BNN takes observations {enc.observation_shape} but the env gives {want}: "
                           "train-policy --set observation.KEY=VALUE to match it, or another BNN")
     return enc
+
+
+def _check_bnn_maps(cfg: PolicyTrainConfig, ckpt: Path, drawn: dict[str, Any]) -> None:
+    """Refuse a frozen encoder whose training maps were drawn otherwise than this run's.
+
+    The shape check alone passes a BNN trained without the route (``observation.route``)
+    for a run that draws it, or with other eq. 13 coefficients: the same tensor, other
+    content, which the frozen code was never trained on. The noise may differ (a policy
+    can be tested on noisier sensors than its encoder saw); every other field must match.
+    A BNN run that predates this record (no ``observation`` in its config) is checked by
+    shape only.
+    """
+    try:
+        theirs = validate(ObservationConfig, drawn).model_dump(mode="json")
+    except ConfigError as exc:
+        raise CheckpointError(f"{ckpt}: unusable observation record ({exc})") from None
+    ours = cfg.observation.model_dump(mode="json")
+    changed = [f"{k} ({theirs[k]} → {ours[k]})" for k in sorted(ours) if k != "noise" and theirs[k] != ours[k]]
+    if changed:
+        raise ConfigError(f"--bnn {cfg.bnn}: its maps were drawn with other observation settings than this "
+                          f"run's: observation.{', observation.'.join(changed)}; "
+                          "train-policy --set observation.KEY=VALUE to match them, or another BNN")
 
 
 def build_network(cfg: PolicyTrainConfig, encoder_cfg: BottleneckConfig | None,

@@ -105,6 +105,9 @@ def test_train_bnn_cli_on_the_study_dataset(tiny_study, tmp_path, capsys):
             "--channels", "4", "8", "-q", "--set", "batch_size=16"]
     assert main(args) == 0
     assert "held-out loss" in capsys.readouterr().out
+    # The run records how its maps were drawn, for the policies that will read its code.
+    drawn = ShardDataset(out / "dataset").manifest["env_configs"][0]["observation"]
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["observation"] == drawn
     # A second start without --resume refuses to overwrite; with it, it continues.
     assert main(args) == 2
     assert main([*args, "--resume"]) == 0

@@ -5,9 +5,12 @@ import shutil
 
 import pytest
 
-from latentdrive.bnn.checkpoint import save_checkpoint
+from latentdrive.bnn.checkpoint import CheckpointError, save_checkpoint
 from latentdrive.cli import main
+from latentdrive.config import ObservationConfig, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
+from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.policy import encoder_config
 from latentdrive.rl.train import train_policy
 from latentdrive.runlock import LOCK_NAME
 
@@ -42,12 +45,18 @@ def raw_run(tmp_path_factory):
     return root / "raw"
 
 
-def _bnn_run(path, obs_shape):
+def _bnn_run(path, obs_shape, observation=None):
     path.mkdir(parents=True)
     cfg = BottleneckConfig(input_shape=obs_shape, latent_dim=8, channels=(4,))
-    save_checkpoint(path / "checkpoint.safetensors", BottleneckNetwork(cfg), step=0, epoch=0,
-                    config={"model": cfg.model_dump(mode="json")})
+    config = {"model": cfg.model_dump(mode="json")}
+    if observation is not None:
+        config["observation"] = observation
+    save_checkpoint(path / "checkpoint.safetensors", BottleneckNetwork(cfg), step=0, epoch=0, config=config)
     return path
+
+
+#: The observation TINY_SETS configures, as a BNN run records it.
+TINY_OBSERVATION = ObservationConfig(height=16, width=32, frames=2).model_dump(mode="json")
 
 
 def test_latent_mode_needs_a_bnn(tmp_path, capsys):
@@ -61,6 +70,33 @@ def test_a_bnn_of_another_observation_shape_is_refused(tmp_path, capsys):
     bnn = _bnn_run(tmp_path / "bnn", (4, 32, 64))  # the default grid, not the tiny one
     _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", "--bnn", str(bnn), *TINY_SETS],
            "the BNN takes observations (4, 4, 32, 64) but the env gives (4, 2, 16, 32)", tmp_path)
+
+
+def test_a_bnn_whose_maps_were_drawn_otherwise_is_refused(tmp_path, capsys):
+    # The same shape with other content: the route drawn in the MV channel, which the
+    # frozen code never saw. The error names the field.
+    bnn = _bnn_run(tmp_path / "bnn", (2, 16, 32), TINY_OBSERVATION)
+    _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", "--bnn", str(bnn), *TINY_SETS,
+                    "--set", "observation.route=1.0"], "observation.route (0.0 → 1.0)", tmp_path)
+    _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", "--bnn", str(bnn), *TINY_SETS,
+                    "--set", "observation.beta=0.5"], "observation.beta (0.3 → 0.5)", tmp_path)
+
+
+def test_a_bnn_of_the_same_maps_is_accepted_whatever_the_noise(tmp_path):
+    bnn = _bnn_run(tmp_path / "bnn", (2, 16, 32), TINY_OBSERVATION)
+    obs = {**TINY_OBSERVATION, "noise": {**TINY_OBSERVATION["noise"], "position_std": 2.0}}
+    cfg = validate(PolicyTrainConfig, {"mode": "latent", "bnn": str(bnn), "observation": obs})
+    enc = encoder_config(cfg)
+    assert enc is not None and enc.observation_shape == (4, 2, 16, 32)
+    # A BNN run that predates the record is checked by shape alone.
+    old = _bnn_run(tmp_path / "old", (2, 16, 32))
+    routed = validate(PolicyTrainConfig, {"mode": "latent", "bnn": str(old), "observation": {**obs, "route": 1.0}})
+    enc = encoder_config(routed)
+    assert enc is not None and enc.observation_shape == (4, 2, 16, 32)
+    # An unreadable record is a broken checkpoint, not a silent pass.
+    bad = _bnn_run(tmp_path / "bad", (2, 16, 32), {**TINY_OBSERVATION, "height": -1})
+    with pytest.raises(CheckpointError, match="unusable observation record"):
+        encoder_config(validate(PolicyTrainConfig, {"mode": "latent", "bnn": str(bad), "observation": obs}))
 
 
 def test_unknown_scenarios_are_refused(tmp_path, capsys, raw_run):
