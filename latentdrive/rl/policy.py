@@ -80,16 +80,19 @@ def _check_bnn_maps(cfg: PolicyTrainConfig, ckpt: Path, drawn: dict[str, Any]) -
     A BNN run that predates this record (no ``observation`` in its config) is checked by
     shape only.
     """
+    # Fields a later version removed are not this version's to compare.
+    known = {k: v for k, v in drawn.items() if k in ObservationConfig.model_fields}
     try:
-        theirs = validate(ObservationConfig, drawn).model_dump(mode="json")
+        theirs = validate(ObservationConfig, known).model_dump(mode="json")
     except ConfigError as exc:
         raise CheckpointError(f"{ckpt}: unusable observation record ({exc})") from None
     ours = cfg.observation.model_dump(mode="json")
-    changed = [f"{k} ({theirs[k]} → {ours[k]})" for k in sorted(ours) if k != "noise" and theirs[k] != ours[k]]
+    changed = [f"{k} (BNN {theirs[k]}, this run {ours[k]})" for k in sorted(ours)
+               if k != "noise" and theirs[k] != ours[k]]
     if changed:
         raise ConfigError(f"--bnn {cfg.bnn}: its maps were drawn with other observation settings than this "
-                          f"run's: observation.{', observation.'.join(changed)}; "
-                          "train-policy --set observation.KEY=VALUE to match them, or another BNN")
+                          f"run's: observation.{', observation.'.join(changed)}; set observation.KEY=VALUE "
+                          "to match them, or use another BNN")
 
 
 def build_network(cfg: PolicyTrainConfig, encoder_cfg: BottleneckConfig | None,

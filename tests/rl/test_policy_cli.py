@@ -77,9 +77,11 @@ def test_a_bnn_whose_maps_were_drawn_otherwise_is_refused(tmp_path, capsys):
     # frozen code never saw. The error names the field.
     bnn = _bnn_run(tmp_path / "bnn", (2, 16, 32), TINY_OBSERVATION)
     _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", "--bnn", str(bnn), *TINY_SETS,
-                    "--set", "observation.route=1.0"], "observation.route (0.0 → 1.0)", tmp_path)
+                    "--steps", "10", "--set", "observation.route=1.0"], "observation.route (BNN 0.0, this run 1.0)",
+           tmp_path)
     _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", "--bnn", str(bnn), *TINY_SETS,
-                    "--set", "observation.beta=0.5"], "observation.beta (0.3 → 0.5)", tmp_path)
+                    "--steps", "10", "--set", "observation.beta=0.5"], "observation.beta (BNN 0.3, this run 0.5)",
+           tmp_path)
 
 
 def test_a_bnn_of_the_same_maps_is_accepted_whatever_the_noise(tmp_path):
@@ -93,6 +95,10 @@ def test_a_bnn_of_the_same_maps_is_accepted_whatever_the_noise(tmp_path):
     routed = validate(PolicyTrainConfig, {"mode": "latent", "bnn": str(old), "observation": {**obs, "route": 1.0}})
     enc = encoder_config(routed)
     assert enc is not None and enc.observation_shape == (4, 2, 16, 32)
+    # A field this version does not know (a later one's) is left out of the comparison.
+    newer = _bnn_run(tmp_path / "newer", (2, 16, 32), {**TINY_OBSERVATION, "lidar": True})
+    enc = encoder_config(validate(PolicyTrainConfig, {"mode": "latent", "bnn": str(newer), "observation": obs}))
+    assert enc is not None
     # An unreadable record is a broken checkpoint, not a silent pass.
     bad = _bnn_run(tmp_path / "bad", (2, 16, 32), {**TINY_OBSERVATION, "height": -1})
     with pytest.raises(CheckpointError, match="unusable observation record"):
