@@ -28,7 +28,7 @@ def saved_configs(run_dir: Path) -> dict[str, Any] | None:
     return config
 
 
-def _changed_fields(saved: Any, cfg: Config, ignore: frozenset[str] = frozenset()) -> list[str]:
+def changed_fields(saved: Any, cfg: Config, ignore: frozenset[str] = frozenset()) -> list[str]:
     """Fields of ``cfg`` whose value differs from the saved JSON dump ``saved``, as
     ``name (saved → now)``. A field missing from ``saved`` (a checkpoint written before the
     field existed) counts as its default, which is what that run used."""
@@ -45,13 +45,13 @@ def _changed_fields(saved: Any, cfg: Config, ignore: frozenset[str] = frozenset(
 def check_resumable(
     ckpt: Path, saved: dict[str, Any], cfg: Config, model_cfg: BottleneckConfig
 ) -> None:
-    changed = _changed_fields(saved.get("model"), model_cfg)
+    changed = changed_fields(saved.get("model"), model_cfg)
     if changed:
         raise CheckpointError(
             f"{ckpt}: checkpoint was made with another model config ({', '.join(changed)}); "
             "pass the saved values or use a new run_dir"
         )
-    changed = _changed_fields(saved.get("train"), cfg, _RESUMABLE_CHANGES)
+    changed = changed_fields(saved.get("train"), cfg, _RESUMABLE_CHANGES)
     if changed:
         raise CheckpointError(
             f"{ckpt}: checkpoint was made with other training settings ({', '.join(changed)}); "

@@ -19,8 +19,9 @@ from numpy.typing import NDArray
 
 from latentdrive.actions import N_ACTIONS
 from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
+from latentdrive.bnn.resume import changed_fields
 from latentdrive.bnn.train import load_trained_bottleneck
-from latentdrive.config import ConfigError, ObservationConfig, config_hash, validate
+from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.fileio import read_json
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
@@ -60,7 +61,7 @@ def encoder_config(cfg: PolicyTrainConfig) -> BottleneckConfig | None:
             raise CheckpointError(f"{ckpt}: not a BNN checkpoint (no model config)")
         enc = validate(BottleneckConfig, saved["model"])
         if cfg.mode == "latent" and isinstance(saved.get("observation"), dict):
-            _check_bnn_maps(cfg, ckpt, saved["observation"])
+            _check_bnn_maps(cfg, saved["observation"])
     else:
         enc = BottleneckConfig.for_observation(cfg.observation)
     want = cfg.observation.shape
@@ -70,7 +71,7 @@ def encoder_config(cfg: PolicyTrainConfig) -> BottleneckConfig | None:
     return enc
 
 
-def _check_bnn_maps(cfg: PolicyTrainConfig, ckpt: Path, drawn: dict[str, Any]) -> None:
+def _check_bnn_maps(cfg: PolicyTrainConfig, drawn: dict[str, Any]) -> None:
     """Refuse a frozen encoder whose training maps were drawn otherwise than this run's.
 
     The shape check alone passes a BNN trained without the route (``observation.route``)
@@ -80,19 +81,12 @@ def _check_bnn_maps(cfg: PolicyTrainConfig, ckpt: Path, drawn: dict[str, Any]) -
     A BNN run that predates this record (no ``observation`` in its config) is checked by
     shape only.
     """
-    # Fields a later version removed are not this version's to compare.
-    known = {k: v for k, v in drawn.items() if k in ObservationConfig.model_fields}
-    try:
-        theirs = validate(ObservationConfig, known).model_dump(mode="json")
-    except ConfigError as exc:
-        raise CheckpointError(f"{ckpt}: unusable observation record ({exc})") from None
-    ours = cfg.observation.model_dump(mode="json")
-    changed = [f"{k} (BNN {theirs[k]}, this run {ours[k]})" for k in sorted(ours)
-               if k != "noise" and theirs[k] != ours[k]]
+    # A field the record lacks counts as its default; one this version lacks is not compared.
+    changed = changed_fields(drawn, cfg.observation, ignore=frozenset({"noise"}))
     if changed:
         raise ConfigError(f"--bnn {cfg.bnn}: its maps were drawn with other observation settings than this "
-                          f"run's: observation.{', observation.'.join(changed)}; set observation.KEY=VALUE "
-                          "to match them, or use another BNN")
+                          f"run's (the BNN's → this run's): observation.{', observation.'.join(changed)}; "
+                          "set observation.KEY=VALUE to match them, or use another BNN")
 
 
 def build_network(cfg: PolicyTrainConfig, encoder_cfg: BottleneckConfig | None,

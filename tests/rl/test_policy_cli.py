@@ -5,9 +5,9 @@ import shutil
 
 import pytest
 
-from latentdrive.bnn.checkpoint import CheckpointError, save_checkpoint
+from latentdrive.bnn.checkpoint import save_checkpoint
 from latentdrive.cli import main
-from latentdrive.config import ObservationConfig, validate
+from latentdrive.config import ConfigError, ObservationConfig, validate
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import encoder_config
@@ -77,10 +77,10 @@ def test_a_bnn_whose_maps_were_drawn_otherwise_is_refused(tmp_path, capsys):
     # frozen code never saw. The error names the field.
     bnn = _bnn_run(tmp_path / "bnn", (2, 16, 32), TINY_OBSERVATION)
     _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", "--bnn", str(bnn), *TINY_SETS,
-                    "--steps", "10", "--set", "observation.route=1.0"], "observation.route (BNN 0.0, this run 1.0)",
+                    "--steps", "10", "--set", "observation.route=1.0"], "observation.route (0.0 → 1.0)",
            tmp_path)
     _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "latent", "--bnn", str(bnn), *TINY_SETS,
-                    "--steps", "10", "--set", "observation.beta=0.5"], "observation.beta (BNN 0.3, this run 0.5)",
+                    "--steps", "10", "--set", "observation.beta=0.5"], "observation.beta (0.3 → 0.5)",
            tmp_path)
 
 
@@ -99,9 +99,9 @@ def test_a_bnn_of_the_same_maps_is_accepted_whatever_the_noise(tmp_path):
     newer = _bnn_run(tmp_path / "newer", (2, 16, 32), {**TINY_OBSERVATION, "lidar": True})
     enc = encoder_config(validate(PolicyTrainConfig, {"mode": "latent", "bnn": str(newer), "observation": obs}))
     assert enc is not None
-    # An unreadable record is a broken checkpoint, not a silent pass.
-    bad = _bnn_run(tmp_path / "bad", (2, 16, 32), {**TINY_OBSERVATION, "height": -1})
-    with pytest.raises(CheckpointError, match="unusable observation record"):
+    # A record with a field outside the schema still refuses what differs.
+    bad = _bnn_run(tmp_path / "bad", (2, 16, 32), {**TINY_OBSERVATION, "alpha": -1})
+    with pytest.raises(ConfigError, match=r"observation\.alpha \(-1 → 0\.5\)"):
         encoder_config(validate(PolicyTrainConfig, {"mode": "latent", "bnn": str(bad), "observation": obs}))
 
 
