@@ -125,7 +125,7 @@ def train_bnn(
     """
     run = Path(run_dir)
     if cfg.val_samples and val_batches_fn is not None:
-        val_batches_fn = functools.partial(_first_samples, val_batches_fn, cfg.val_samples)
+        val_batches_fn = functools.partial(first_samples, val_batches_fn, cfg.val_samples)
     if cfg.epoch_steps:
         train_batches_fn = functools.partial(_capped, train_batches_fn, cfg.epoch_steps)
         if steps_per_epoch is not None:
@@ -146,7 +146,7 @@ def _capped(batches_fn: Callable[[int], Iterable[BNNBatch]], steps: int, epoch: 
     return itertools.islice(batches_fn(epoch), steps)
 
 
-def _first_samples(batches_fn: Callable[[], Iterable[BNNBatch]], samples: int) -> Iterator[BNNBatch]:
+def first_samples(batches_fn: Callable[[], Iterable[BNNBatch]], samples: int) -> Iterator[BNNBatch]:
     """The batches of ``batches_fn()`` up to ``samples`` samples in all (the last one cut)."""
     left = samples
     for b in batches_fn():

@@ -126,7 +126,7 @@ class BNNTrainConfig(Config):
         description="Held-out samples scored at each validation during training, the first "
         "ones the validation batches yield (0: all of them); train-bnn and the studies then "
         "draw validation batches that hold every scenario in proportion. Studies score their "
-        "final weights on every held-out sample regardless.",
+        "final weights apart from this, on the samples their score_samples names.",
     )
     precision: Precision = Field(
         "auto",

@@ -15,9 +15,10 @@ Every step skips what is already done, so an interrupted study continues where i
 
 from __future__ import annotations
 
+import functools
 import json
 import math
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ from latentdrive.bnn.train import (
     CHECKPOINT_NAME,
     BNNTrainConfig,
     check_run_dir,
+    first_samples,
     train_bnn,
 )
 from latentdrive.config import Config, ConfigError, describe_validation_error, load_preset, validate
@@ -92,6 +94,10 @@ class BNNStudyConfig(Config):
     lambdas: list[float] = Field(default_factory=lambda: [0.01], description="λ > 0 values trained at the largest latent size.")
     val_fraction: float = Field(0.15, gt=0.0, lt=1.0, description="Share of each scenario's episodes held out for evaluation.")
     eval_samples: int = Field(300, ge=10, le=100_000, description="Held-out samples per scenario used for the distance matrices and figures.")
+    score_samples: int = Field(
+        0, ge=0, le=10_000_000,
+        description="Held-out samples, over all scenarios, on which the reconstruction error and vehicle recovery "
+        "are scored (mixed batches, so every scenario is in); 0 scores every held-out sample.")
     raw_pool: int = Field(4, ge=1, le=64, description="Average-pooling factor over H and W of the raw-input baseline space.")
 
     @field_validator("model")
@@ -283,18 +289,20 @@ def report_bnn_runs(cfg: BNNStudyConfig, dataset: Path, runs: Mapping[str, tuple
     ds = ShardDataset(dataset)
     _, val_ids = _split(ds, cfg.val_fraction, cfg.train.seed)
     data = held_out(ds, val_ids, cfg.eval_samples, seed=cfg.train.seed)
+    scored = _scored_batches(ds, val_ids, cfg)
     names, raw = distance_matrix(data.by_scenario(raw_features(data.noisy, cfg.raw_pool)))
     report: dict[str, Any] = {
         "dataset_samples": len(ds), "held_out_samples": len(data.scenario),
+        "scored_samples": cfg.score_samples if 0 < cfg.score_samples < ds.num_samples(val_ids) else None,
         "raw_scenarios": names, "raw_distance": raw.tolist(), "raw_mean_between_scenario_distance": mean_offdiag(raw),
-        "noisy_input_vehicles": {**input_vehicle_recovery(ds, val_ids, cfg.train.batch_size),
+        "noisy_input_vehicles": {**input_vehicle_recovery(ds, scored),
                                  "drawn_cells_within": (refs := reach_references(data))["input"]},
         "every_cell_within": refs["every cell"],
         "runs": {},
     }
     for name, (run, d, lam) in runs.items():
         report["runs"][name] = {"latent_dim": d, "lambda": lam,
-                                **evaluate_run(run, data, ds, val_ids, cfg.train.batch_size)}
+                                **evaluate_run(run, data, ds, scored)}
     report = json_values(report)
     out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / "report.json", json.dumps(report, indent=1, allow_nan=False) + "\n")
@@ -306,6 +314,17 @@ def report_bnn_runs(cfg: BNNStudyConfig, dataset: Path, runs: Mapping[str, tuple
 
     write_bnn_figures(out / "figures", {name: run for name, (run, _, _) in runs.items()}, data, report, cfg.train.seed)
     return report
+
+
+def _scored_batches(ds: ShardDataset, val_ids: np.ndarray, cfg: BNNStudyConfig) -> Callable[[], Iterable[BNNBatch]]:
+    """The held-out batches the runs and the noisy input are scored on: every held-out
+    sample, or the first ``cfg.score_samples`` of mixed batches, the same for every run."""
+    def every() -> Iterator[BNNBatch]:
+        return ds.batches(cfg.train.batch_size, val_ids, seed=0, epoch=0, mixed=cfg.score_samples > 0)
+
+    if cfg.score_samples == 0:
+        return every
+    return functools.partial(first_samples, every, cfg.score_samples)
 
 
 def study_runs(cfg: BNNStudyConfig) -> list[tuple[str, int, float]]:

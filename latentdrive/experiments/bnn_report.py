@@ -73,6 +73,7 @@ class _Report(BaseModel):
 
     dataset_samples: int = Field(ge=0)
     held_out_samples: int = Field(ge=0)
+    scored_samples: int | None = Field(None, ge=1)
     raw_scenarios: list[str]
     raw_distance: list[list[float]]
     raw_mean_between_scenario_distance: float | None
@@ -188,6 +189,11 @@ def _reach_table(report: dict[str, Any]) -> list[str]:
         f"| {n} | " + " | ".join(fmt_value(r.get(k), ".1%") for k in ks) + " |" for n, r in rows.items()]
 
 
+def _scored(report: dict[str, Any]) -> str:
+    n = report.get("scored_samples")
+    return "every held-out sample" if n is None else f"the first {n} held-out samples of mixed batches"
+
+
 def format_report(report: dict[str, Any]) -> str:
     """The study's findings as Markdown tables."""
     runs = report["runs"]
@@ -195,7 +201,7 @@ def format_report(report: dict[str, Any]) -> str:
         "# Bottleneck network study",
         "",
         f"Dataset: {report['dataset_samples']} samples; whole episodes held out. Reconstruction error and "
-        f"vehicles are scored on every held-out sample, scenario distances and figures on "
+        f"vehicles are scored on {_scored(report)}, scenario distances and figures on "
         f"{report['held_out_samples']} of them.",
         "",
         "## Reconstruction error and scenario distance per run",

@@ -9,7 +9,7 @@ in ``report.json``; the Markdown of it is :func:`latentdrive.experiments.bnn_rep
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +18,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from latentdrive.bnn.batch import BNNBatch
 from latentdrive.bnn.distance import distance_matrix
 from latentdrive.bnn.evaluate import add_counts, evaluate_bnn, vehicle_counts_by_scenario
 from latentdrive.bnn.train import load_trained_bottleneck
@@ -64,14 +65,14 @@ def _recall_by_name(ds: ShardDataset, per: dict[int, VehicleCounts]) -> dict[str
     return {ds.scenario_names[s]: finite_or_none(c.recall) for s, c in per.items() if c.vehicles}
 
 
-def input_vehicle_recovery(ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
+def input_vehicle_recovery(ds: ShardDataset, batches: Callable[[], Iterable[BNNBatch]]) -> dict[str, Any]:
     """The noisy input scored as if it were a reconstruction of the clean target, over the
-    held-out episodes: the reference for the runs' vehicle scores
+    held-out samples of ``batches()``: the reference for the runs' vehicle scores
     (:mod:`latentdrive.bnn.vehicles`). Returns ``vehicle_recall``, ``vehicle_precision``,
     ``vehicles`` and ``by_scenario`` (name → recall); undefined values are None.
     """
     per: dict[int, VehicleCounts] = {}
-    for b in ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False):
+    for b in batches():
         per = add_counts(per, vehicle_counts_by_scenario(channel_pairs(b.noisy)[:, 0], channel_pairs(b.clean)[:, 0],
                                                          b.scenario))
     total = VehicleCounts.total(per.values())
@@ -111,10 +112,11 @@ def reach_references(data: HeldOut) -> dict[str, dict[str, float | None]]:
             "every cell": drawn_cell_reach(data, lambda x: torch.ones_like(pair(x)))}
 
 
-def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, val_ids: np.ndarray, batch_size: int) -> dict[str, Any]:
-    """Held-out reconstruction error and latent scenario distances of one trained run."""
+def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, batches: Callable[[], Iterable[BNNBatch]]) -> dict[str, Any]:
+    """Held-out reconstruction error (over the samples of ``batches()``) and latent scenario
+    distances (over ``data``) of one trained run."""
     model = load_trained_bottleneck(run_dir)
-    metrics, per = evaluate_bnn(model, ds.batches(batch_size, val_ids, seed=0, epoch=0, mixed=False),
+    metrics, per = evaluate_bnn(model, batches(),
                                          torch.device("cpu"), mmd_samples=2)
     names, lat = distance_matrix(data.by_scenario(encode(model, data.noisy)))
     return {"val_recon": metrics["val_loss"], "val_vehicle_l2": metrics["val_vehicle_l2"],

@@ -41,6 +41,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("model",): {},
     ("reward", "failure"): 0.0,
     ("observation", "route"): 0.0,
+    ("study", "score_samples"): 0,
 }
 
 

@@ -200,17 +200,25 @@ def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] |
     steps.append(Step("dataset", "dataset", {"collect": collect, "specs": specs}, cost=samples / 300))
     runs = study_runs(bnn_study)
     epochs = cfg.bnn.train.pretrain_epochs + cfg.bnn.train.mixed_epochs
+    # Rough seconds on a 2-core CPU: ~80 training samples/s, ~100 scored samples/s per run
+    # (and the noisy input). An epoch is capped at epoch_steps batches when that is set.
+    train_ids = samples * (1 - cfg.bnn.val_fraction)
+    per_epoch = min(train_ids, cfg.bnn.train.epoch_steps * cfg.bnn.train.batch_size) if cfg.bnn.train.epoch_steps else train_ids
+    bnn_cost = epochs * per_epoch / 80
+    held = samples * cfg.bnn.val_fraction
+    scored = min(held, cfg.bnn.score_samples) if cfg.bnn.score_samples else held
     # Settings newer than finished studies stay out of the keys at their old behaviour
     # (graph.LATER_SETTINGS), so those studies keep their keys.
     for name, d, lam in runs:
         bnn_cfg = {"train": cfg.bnn.train.replace(lambda_distance=lam).model_dump(mode="json"),
                    "latent_dim": d, "channels": list(cfg.bnn.channels), "val_fraction": cfg.bnn.val_fraction,
                    "model": dict(cfg.bnn.model)}
-        steps.append(Step(f"bnn/{name}", "bnn", bnn_cfg, {"dataset": "dataset"}, cost=epochs * samples / 80))
+        steps.append(Step(f"bnn/{name}", "bnn", bnn_cfg, {"dataset": "dataset"}, cost=bnn_cost))
     steps.append(Step("bnn/report", "bnn-report",
                       {"study": bnn_study.model_dump(mode="json"),
                        "runs": {n: [d, lam] for n, d, lam in runs}},
-                      {"dataset": "dataset", **{f"run:{n}": f"bnn/{n}" for n, _, _ in runs}}, cost=30))
+                      {"dataset": "dataset", **{f"run:{n}": f"bnn/{n}" for n, _, _ in runs}},
+                      cost=30 + (len(runs) + 1) * scored / 100))
     policy_bnn = f"bnn/{run_name(cfg.policy_bnn)}"
     # latent-random and end-to-end take only the architecture of the policy BNN (not its
     # weights), so the ablations differ from latent in the weights alone.

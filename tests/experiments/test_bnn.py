@@ -9,7 +9,7 @@ from helpers import held_by_another_process
 from latentdrive.cli import main
 from latentdrive.config import ConfigError, LatentDriveError
 from latentdrive.data.dataset import ShardDataset
-from latentdrive.experiments.bnn import load_study_config, run_bnn_study, run_name
+from latentdrive.experiments.bnn import load_study_config, report_bnn_runs, run_bnn_study, run_name, study_runs
 from latentdrive.experiments.bnn_report import format_report
 from latentdrive.experiments.bnn_scores import raw_features
 
@@ -61,6 +61,30 @@ def test_rerun_resumes_without_retraining(tiny_study):
     again = run_bnn_study(cfg, out, progress=False, say=lambda s: None)
     assert ckpt.stat().st_mtime_ns == before
     assert again["runs"]["d4"]["val_recon"] == pytest.approx(report["runs"]["d4"]["val_recon"])
+
+
+def test_score_samples_caps_the_held_out_samples_scored(tiny_study, tmp_path):
+    out, cfg, full = tiny_study
+    held = ShardDataset(out / "dataset").num_samples(json.loads((out / "runs" / "d4" / "split.json").read_text())["val_episodes"])
+    runs = {n: (out / "runs" / n, d, lam) for n, d, lam in study_runs(cfg)}
+
+    def report(cap: int) -> dict[str, Any]:
+        return report_bnn_runs(cfg.replace(score_samples=cap), out / "dataset", runs, tmp_path / str(cap), say=lambda s: None)
+
+    assert full["scored_samples"] is None and "scored on every held-out sample" in (out / "report.md").read_text()
+    capped = report(held // 3)
+    assert capped["scored_samples"] == held // 3
+    assert f"scored on the first {held // 3} held-out samples of mixed batches" in (tmp_path / str(held // 3) / "report.md").read_text()
+    assert 0 < capped["noisy_input_vehicles"]["vehicles"] < full["noisy_input_vehicles"]["vehicles"]
+    # Mixed batches: every scenario is in the capped score.
+    assert set(capped["noisy_input_vehicles"]["by_scenario"]) == set(full["noisy_input_vehicles"]["by_scenario"])
+    # A cap at or above the held-out count scores every sample: the same vehicles, in another order.
+    whole = report(held)
+    assert whole["scored_samples"] is None
+    assert whole["noisy_input_vehicles"] == full["noisy_input_vehicles"]
+    for name, r in whole["runs"].items():
+        assert r["vehicle_recall"] == full["runs"][name]["vehicle_recall"]
+        assert r["val_recon"] == pytest.approx(full["runs"][name]["val_recon"], rel=1e-5)
 
 
 def test_held_out_episodes_are_not_trained_on(tiny_study):
