@@ -163,15 +163,26 @@ def test_an_interrupt_stops_the_running_step_and_a_rerun_finishes_it(tmp_path: P
     g = Graph([Step("long", "toy", {"value": 1, "wait_for": str(go)})])
     folder = g.folder(tmp_path, "long")
 
+    seen: dict[str, float | bool] = {}
+
     def ctrl_c() -> None:
-        deadline = time.monotonic() + 60
-        while not (folder / "pid").exists() and time.monotonic() < deadline:
+        start = time.monotonic()
+        while not (folder / "pid").exists() and time.monotonic() < start + 60:
             time.sleep(0.02)
-        os.kill(os.getpid(), signal.SIGINT)
+        seen.update(pid_file=(folder / "pid").exists(), after_s=time.monotonic() - start)
+        # To the main thread itself: a process-directed SIGINT may land on this thread,
+        # and then the main thread's wait on the step is not interrupted until it ends.
+        signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGINT)
 
     threading.Thread(target=ctrl_c, daemon=True).start()
-    with pytest.raises(KeyboardInterrupt):
+    started = time.monotonic()
+    try:
         run_local(g, tmp_path, KINDS, workers=1, preload=PRELOAD, progress=False)
+    except KeyboardInterrupt:
+        pass
+    else:
+        pytest.fail(f"the study was not interrupted: it ran {time.monotonic() - started:.1f} s; "
+                    f"the interrupt thread saw {seen}")
     # The step's process does not outlive the study, and the step is not recorded as done.
     assert _gone(int((folder / "pid").read_text()))
     assert g.record(tmp_path, "long") is None
