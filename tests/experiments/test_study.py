@@ -112,12 +112,12 @@ def test_a_bad_bnn_model_section_is_refused(model: dict[str, object], names: str
 def test_bnn_step_costs_follow_the_capped_epochs_and_the_scored_samples() -> None:
     g = build_graph(load_reproduce_config("quick"))
     # 600 episodes × 5 scenarios × 40 samples, 85% trained on: 102,000 samples, but epochs
-    # capped at 300 steps of 16 (4,800 samples), 8 epochs at 80 samples/s.
-    assert g.steps["bnn/d64"].cost == pytest.approx(8 * 4800 / 80)
-    # 2,048 samples scored by 4 runs and the noisy input at 100 samples/s, after 30 s.
-    assert g.steps["bnn/report"].cost == pytest.approx(30 + 5 * 2048 / 100)
+    # capped at 250 steps of 16 (4,000 samples), 8 epochs at 80 samples/s.
+    assert g.steps["bnn/d64"].cost == pytest.approx(8 * 4000 / 80)
+    # 2,048 samples scored by 3 runs and the noisy input at 100 samples/s, after 30 s.
+    assert g.steps["bnn/report"].cost == pytest.approx(30 + 4 * 2048 / 100)
     uncapped = build_graph(load_reproduce_config("quick", {"bnn": {"score_samples": 0, "train": {"epoch_steps": 0}}}))
     assert uncapped.steps["bnn/d64"].cost == pytest.approx(8 * 102_000 / 80)
-    assert uncapped.steps["bnn/report"].cost == pytest.approx(30 + 5 * 18_000 / 100)
+    assert uncapped.steps["bnn/report"].cost == pytest.approx(30 + 4 * 18_000 / 100)
     # The cap is left out of the key at 0, so studies reported before it keep their keys.
     assert "score_samples" not in keyed_config(uncapped.steps["bnn/report"].config)["study"]
