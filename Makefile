@@ -15,7 +15,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/pip install -q -e ".[dev,ray]"
 	touch $(STAMP)
 
-## run: the main job on its small built-in default: the quick study (about 17 minutes on 2 cores)
+## run: the main job on its small built-in default: the quick study (about 29 minutes on 2 cores)
 run: $(STAMP)
 	$(BIN)/latentdrive reproduce runs/quick --preset quick --workers 2
 
