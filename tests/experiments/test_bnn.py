@@ -9,7 +9,13 @@ from helpers import held_by_another_process
 from latentdrive.cli import main
 from latentdrive.config import ConfigError, LatentDriveError
 from latentdrive.data.dataset import ShardDataset
-from latentdrive.experiments.bnn import load_study_config, report_bnn_runs, run_bnn_study, run_name, study_runs
+from latentdrive.experiments.bnn import (
+    load_study_config,
+    report_bnn_runs,
+    run_bnn_study,
+    run_name,
+    study_runs,
+)
 from latentdrive.experiments.bnn_report import format_report
 from latentdrive.experiments.bnn_scores import raw_features
 
