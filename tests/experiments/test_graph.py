@@ -174,6 +174,9 @@ def test_an_interrupt_stops_the_running_step_and_a_rerun_finishes_it(tmp_path: P
         # and then the main thread's wait on the step is not interrupted until it ends.
         signal.pthread_kill(threading.main_thread().ident or 0, signal.SIGINT)
 
+    # Ctrl-C as at a terminal: a shell that starts the tests in the background (`cmd &`)
+    # hands them SIGINT ignored, and Python then never raises KeyboardInterrupt.
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
     threading.Thread(target=ctrl_c, daemon=True).start()
     started = time.monotonic()
     try:
@@ -183,6 +186,8 @@ def test_an_interrupt_stops_the_running_step_and_a_rerun_finishes_it(tmp_path: P
     else:
         pytest.fail(f"the study was not interrupted: it ran {time.monotonic() - started:.1f} s; "
                     f"the interrupt thread saw {seen}")
+    finally:
+        signal.signal(signal.SIGINT, before)
     # The step's process does not outlive the study, and the step is not recorded as done.
     assert _gone(int((folder / "pid").read_text()))
     assert g.record(tmp_path, "long") is None
