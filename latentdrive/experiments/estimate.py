@@ -1,7 +1,7 @@
 """How long a study would take, from the step times another study measured.
 
 Each step has a *size* in the unit its time grows with (agent-transitions for a policy,
-sample-epochs for a BNN, episodes for an evaluation), and a *class* within which that time
+training samples for a BNN, episodes for an evaluation), and a *class* within which that time
 per unit is roughly constant (a policy's input mode, a BNN's batch size and architecture,
 an evaluation's backend and policy). A class the measured study did not run is reported
 as unmeasured rather than borrowed from another.
@@ -12,6 +12,7 @@ order: longest remaining chain first) gives its wall time.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
@@ -22,15 +23,24 @@ from latentdrive.experiments.graph import Graph, Step, StepRecord
 __all__ = ["Estimate", "estimate_study", "measured_rates", "step_size"]
 
 
-def step_size(step: Step) -> tuple[str, float]:
-    """``(class, size)`` of a step: what its run time is proportional to."""
+def step_size(step: Step, epoch_samples: float | None = None) -> tuple[str, float]:
+    """``(class, size)`` of a step: what its run time is proportional to.
+
+    A BNN step's size is the training samples it processes: its epochs times the samples of
+    an epoch, which is ``epoch_steps`` batches when capped (whatever the dataset) and the
+    training episodes' samples, ``epoch_samples``, otherwise (or when the cap exceeds them).
+    The step's config does not hold the dataset's size, so the caller gives it.
+    """
     c = step.config
     if step.kind == "dataset":
         return "dataset", float(c["collect"]["episodes"] * len(c["collect"]["scenarios"]))
     if step.kind == "bnn":
-        # An epoch's time also grows with the dataset, which this step's config does not
-        # hold: estimate_study scales it (bnn_scale).
-        return _bnn_class(c), float(c["train"]["pretrain_epochs"] + c["train"]["mixed_epochs"])
+        t = c["train"]
+        cap = float(t["epoch_steps"] * t["batch_size"]) if t.get("epoch_steps") else math.inf
+        per_epoch = min(cap, math.inf if epoch_samples is None else epoch_samples)
+        if math.isinf(per_epoch):
+            raise ConfigError(f"{step.name}: an uncapped BNN epoch's size needs its dataset's sample count")
+        return _bnn_class(c), float(t["pretrain_epochs"] + t["mixed_epochs"]) * per_epoch
     if step.kind == "bnn-report":
         study = c["study"]
         return "bnn-report", float(len(c["runs"]) * study["eval_samples"] * len(study["collect"]["scenarios"]))
@@ -56,12 +66,13 @@ def _bnn_class(c: Mapping[str, Any]) -> str:
     return f"bnn:batch{c['train']['batch_size']}:channels{channels}" + (f":{model}" if model else "")
 
 
-def measured_rates(graph: Graph, records: Mapping[str, StepRecord]) -> dict[str, float]:
-    """Seconds per unit of size for each step class, from finished steps."""
+def measured_rates(graph: Graph, records: Mapping[str, StepRecord], epoch_samples: float | None = None) -> dict[str, float]:
+    """Seconds per unit of size for each step class, from finished steps; ``epoch_samples``
+    as in :func:`step_size`, for the measured study's dataset."""
     wall: dict[str, float] = {}
     size: dict[str, float] = {}
     for name, rec in records.items():
-        cls, n = step_size(graph.steps[name])
+        cls, n = step_size(graph.steps[name], epoch_samples)
         wall[cls] = wall.get(cls, 0.0) + rec.wall_s
         size[cls] = size.get(cls, 0.0) + n
     return {cls: wall[cls] / size[cls] for cls in wall if size[cls] > 0}
@@ -83,22 +94,19 @@ class Estimate:
                 "workers": self.workers, "hours_by_class": self.by_class, "unmeasured": self.unmeasured}
 
 
-def estimate_study(graph: Graph, rates: Mapping[str, float], workers: int, bnn_scale: float = 1.0) -> Estimate:
-    """Step and wall hours of ``graph`` at the measured ``rates``.
-
-    ``bnn_scale`` multiplies BNN-epoch times: an epoch's time grows with the dataset, whose
-    size the measured study may not share (the caller passes the ratio of their episodes).
-    """
+def estimate_study(graph: Graph, rates: Mapping[str, float], workers: int, epoch_samples: float | None = None) -> Estimate:
+    """Step and wall hours of ``graph`` at the measured ``rates``; ``epoch_samples`` as in
+    :func:`step_size`, for the planned study's dataset."""
     times: dict[str, float] = {}
     by_class: dict[str, float] = {}
     unmeasured: set[str] = set()
     for name, step in graph.steps.items():
-        cls, n = step_size(step)
+        cls, n = step_size(step, epoch_samples)
         if cls not in rates:
             unmeasured.add(cls)
             times[name] = 0.0
             continue
-        t = rates[cls] * n * (bnn_scale if step.kind == "bnn" else 1.0)
+        t = rates[cls] * n
         times[name] = t
         by_class[cls] = by_class.get(cls, 0.0) + t / 3600
     return Estimate(steps=len(graph.order), step_hours=sum(times.values()) / 3600,

@@ -186,7 +186,12 @@ def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]
     records = {n: r for n in m_graph.order if (r := m_graph.record(measured, n)) is not None}
     if not records:
         raise ConfigError(f"{measured}: no finished step to measure")
-    rates = measured_rates(m_graph, records)
+    # An uncapped BNN epoch is the training episodes' samples: the measured dataset's count,
+    # and the planned one's from the samples per episode measured (40 until one is).
+    collected = records["dataset"].summary.get("samples") if "dataset" in records else None
+    m_episodes = m_cfg.bnn.collect.episodes * len(m_cfg.scenarios)
+    per_episode = collected / m_episodes if isinstance(collected, int) and collected > 0 else 40.0
+    rates = measured_rates(m_graph, records, per_episode * m_episodes * (1 - m_cfg.bnn.val_fraction))
     for name, factor in (speedup or {}).items():
         hit = [c for c in rates if c == name or c.split(":")[0] == name]
         if not hit:
@@ -195,12 +200,6 @@ def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]
             raise ConfigError(f"--speedup {name}: the factor must be a positive finite number, got {factor:g}")
         for c in hit:
             rates[c] /= factor
-    for which, study in (("measured study", m_cfg), ("planned study", cfg)):
-        if study.bnn.train.epoch_steps:
-            # BNN epochs are scaled by the ratio of the datasets; a capped epoch does not grow
-            # with its dataset, so that scaling would be wrong.
-            raise ConfigError(f"the {which} caps BNN epochs (bnn.train.epoch_steps={study.bnn.train.epoch_steps}); "
-                              f"estimates scale BNN epochs with the dataset and cannot handle capped ones")
-    scale = (cfg.bnn.collect.episodes * len(cfg.scenarios)) / (m_cfg.bnn.collect.episodes * len(m_cfg.scenarios))
     graph = build_graph(cfg)
-    return [estimate_study(graph, rates, w, bnn_scale=scale) for w in workers]
+    p_epoch = per_episode * cfg.bnn.collect.episodes * len(cfg.scenarios) * (1 - cfg.bnn.val_fraction)
+    return [estimate_study(graph, rates, w, epoch_samples=p_epoch) for w in workers]

@@ -8,7 +8,7 @@ import pytest
 
 from latentdrive.cli import main
 from latentdrive.config import ConfigError
-from latentdrive.experiments.estimate import estimate_study, measured_rates
+from latentdrive.experiments.estimate import estimate_study, measured_rates, step_size
 from latentdrive.experiments.graph import Graph, Step, StepRecord
 from latentdrive.experiments.reproduce import estimate_from
 from latentdrive.experiments.study import load_reproduce_config
@@ -63,11 +63,39 @@ def test_bad_speedups_are_one_line(tiny_study: Path, capsys: pytest.CaptureFixtu
     assert len(err) == 4 and all("--speedup" in line for line in err)
 
 
-def test_capped_bnn_epochs_are_refused(tiny_study: Path) -> None:
-    # Epochs are scaled by the ratio of the datasets, which a capped epoch does not follow.
-    capped = load_reproduce_config("tiny", {"bnn": {"train": {"epoch_steps": 5}}})
-    with pytest.raises(ConfigError, match=r"planned study caps BNN epochs \(bnn.train.epoch_steps=5\)"):
-        estimate_from(tiny_study, capped, [1])
+def _bnn(name: str, epoch_steps: int) -> Step:
+    train = {"pretrain_epochs": 1, "mixed_epochs": 1, "epoch_steps": epoch_steps, "batch_size": 4}
+    return Step(name, "bnn", {"train": train, "channels": [4], "latent_dim": 8})
+
+
+def test_a_bnn_step_is_sized_in_the_training_samples_it_processes() -> None:
+    # Two epochs of 10 batches of 4: 80 samples, whatever the dataset, unless it is smaller.
+    capped = Graph([_bnn("capped", 10)])
+    assert step_size(capped.steps["capped"]) == ("bnn:batch4:channels4", 80.0)
+    assert step_size(capped.steps["capped"], epoch_samples=30.0)[1] == 60.0
+    # Uncapped: two epochs of the training episodes' samples, which the caller gives.
+    uncapped = Graph([_bnn("uncapped", 0)])
+    assert step_size(uncapped.steps["uncapped"], epoch_samples=100.0)[1] == 200.0
+    with pytest.raises(ConfigError, match="uncapped: an uncapped BNN epoch's size needs its dataset's sample count"):
+        step_size(uncapped.steps["uncapped"])
+    # So a capped study measures an uncapped one: 8 s for 80 samples, 20 s for 200.
+    rec = StepRecord(name="capped", kind="bnn", key=capped.keys["capped"], summary={}, wall_s=8.0, peak_rss_mb=1.0)
+    rates = measured_rates(capped, {"capped": rec})
+    assert rates == {"bnn:batch4:channels4": pytest.approx(0.1)}
+    assert estimate_study(uncapped, rates, 1, epoch_samples=100.0).step_hours * 3600 == pytest.approx(20.0)
+
+
+def test_capped_and_uncapped_bnn_epochs_estimate_alike(tiny_study: Path) -> None:
+    # Long BNNs, so that their hours (rounded to 0.01 h) carry the ratios.
+    def bnn_hours(train: dict[str, int]) -> float:
+        cfg = load_reproduce_config("tiny", {"bnn": {"train": {"mixed_epochs": 100_000, **train}}})
+        est = estimate_from(tiny_study, cfg, [1])[0]
+        return sum(h for c, h in est.by_class.items() if c.startswith("bnn:"))
+
+    one_step, two_steps = bnn_hours({"epoch_steps": 1}), bnn_hours({"epoch_steps": 2})
+    assert one_step > 1 and two_steps == pytest.approx(2 * one_step, rel=0.01)
+    # A cap above the epoch changes nothing.
+    assert bnn_hours({"epoch_steps": 10**6}) == pytest.approx(bnn_hours({}), rel=0.01)
 
 
 def test_a_bnn_of_another_batch_size_or_architecture_is_not_measured_by_this_one(tiny_study: Path) -> None:
