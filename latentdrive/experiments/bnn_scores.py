@@ -116,8 +116,7 @@ def evaluate_run(run_dir: Path, data: HeldOut, ds: ShardDataset, batches: Callab
     """Held-out reconstruction error (over the samples of ``batches()``) and latent scenario
     distances (over ``data``) of one trained run."""
     model = load_trained_bottleneck(run_dir)
-    metrics, per = evaluate_bnn(model, batches(),
-                                         torch.device("cpu"), mmd_samples=2)
+    metrics, per = evaluate_bnn(model, batches(), torch.device("cpu"), mmd_samples=2)
     names, lat = distance_matrix(data.by_scenario(encode(model, data.noisy)))
     return {"val_recon": metrics["val_loss"], "val_vehicle_l2": metrics["val_vehicle_l2"],
             # None, not NaN, when undefined (no vehicles, nothing drawn): JSON has no NaN.
