@@ -20,7 +20,7 @@ from latentdrive.experiments.estimate import Estimate, estimate_study, measured_
 from latentdrive.experiments.executor import run_local
 from latentdrive.experiments.graph import Graph, StepRecord
 from latentdrive.experiments.results import gather_results
-from latentdrive.experiments.study import ReproduceConfig, build_graph
+from latentdrive.experiments.study import SAMPLES_PER_EPISODE, ReproduceConfig, build_graph
 from latentdrive.experiments.study_report import write_report
 from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
 from latentdrive.runlock import dir_lock
@@ -187,10 +187,10 @@ def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]
     if not records:
         raise ConfigError(f"{measured}: no finished step to measure")
     # An uncapped BNN epoch is the training episodes' samples: the measured dataset's count,
-    # and the planned one's from the samples per episode measured (40 until one is).
+    # and the planned one's from the samples per episode measured (SAMPLES_PER_EPISODE until one is).
     collected = records["dataset"].summary.get("samples") if "dataset" in records else None
     m_episodes = m_cfg.bnn.collect.episodes * len(m_cfg.scenarios)
-    per_episode = collected / m_episodes if isinstance(collected, int) and collected > 0 else 40.0
+    per_episode = collected / m_episodes if isinstance(collected, int) and collected > 0 else float(SAMPLES_PER_EPISODE)
     rates = measured_rates(m_graph, records, per_episode * m_episodes * (1 - m_cfg.bnn.val_fraction))
     for name, factor in (speedup or {}).items():
         hit = [c for c in rates if c == name or c.split(":")[0] == name]

@@ -177,6 +177,10 @@ def policy_name(rep: str, train_set: str, seed: int) -> str:
     return f"policy/{rep}/{train_set}/s{seed}"
 
 
+#: Rough samples a collected episode yields, for costs and estimates made before a dataset exists.
+SAMPLES_PER_EPISODE = 40
+
+
 def reference_name(ref: str) -> str:
     """The step that evaluates reference policy ``ref``."""
     return f"evaluate/ref/{ref}"
@@ -196,14 +200,14 @@ def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] |
     collect.update(scenarios=list(cfg.scenarios), workers=1)
     collect["env"] = merge_overrides(collect.get("env") or {}, {"observation": obs})
     bnn_study = cfg.bnn.model_copy(update={"collect": cfg.bnn.collect.model_validate(collect)})
-    samples = cfg.bnn.collect.episodes * len(cfg.scenarios) * 40
+    samples = cfg.bnn.collect.episodes * len(cfg.scenarios) * SAMPLES_PER_EPISODE
     steps.append(Step("dataset", "dataset", {"collect": collect, "specs": specs}, cost=samples / 300))
     runs = study_runs(bnn_study)
     epochs = cfg.bnn.train.pretrain_epochs + cfg.bnn.train.mixed_epochs
     # Rough seconds on a 2-core CPU: ~80 training samples/s, ~100 scored samples/s per run
     # (and the noisy input). An epoch is capped at epoch_steps batches when that is set.
-    train_ids = samples * (1 - cfg.bnn.val_fraction)
-    per_epoch = min(train_ids, cfg.bnn.train.epoch_steps * cfg.bnn.train.batch_size) if cfg.bnn.train.epoch_steps else train_ids
+    trained = samples * (1 - cfg.bnn.val_fraction)
+    per_epoch = min(trained, cfg.bnn.train.epoch_steps * cfg.bnn.train.batch_size) if cfg.bnn.train.epoch_steps else trained
     bnn_cost = epochs * per_epoch / 80
     held = samples * cfg.bnn.val_fraction
     scored = min(held, cfg.bnn.score_samples) if cfg.bnn.score_samples else held
