@@ -8,9 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import sys
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from typing import NoReturn
 
 from latentdrive.config import (
@@ -21,6 +24,7 @@ from latentdrive.config import (
     positive_int,
 )
 from latentdrive.data.cli import add_collect_parser
+from latentdrive.errors import Terminated
 from latentdrive.experiments.policy_cli import add_policy_parsers
 from latentdrive.experiments.reproduce_cli import add_reproduce_parsers
 from latentdrive.experiments.tune_cli import add_tune_parser
@@ -381,13 +385,35 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated()
+
+
+@contextmanager
+def _terminate_as_interrupt() -> Iterator[None]:
+    """SIGTERM raises :class:`Terminated` for the command's duration (main thread only).
+
+    Without it a terminate ends the process where it stands: the child processes of
+    ``reproduce`` and ``tune`` would run on, orphaned, writing into the run folder.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    old = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, old)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help, or a usage error already printed on one line
         return exc.code if isinstance(exc.code, int) else 2
     try:
-        return int(args.func(args))
+        with _terminate_as_interrupt():
+            return int(args.func(args))
     except LatentDriveError as exc:
         print(f"latentdrive: error: {exc}", file=sys.stderr)
         return 2
@@ -395,6 +421,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f": {exc.filename}" if exc.filename else ""
         print(f"latentdrive: error: {LatentDriveError(f'{exc.strerror or exc}{where}')}", file=sys.stderr)
         return 2
+    except Terminated:
+        print("latentdrive: terminated", file=sys.stderr)
+        return 143
     except KeyboardInterrupt:
         print("latentdrive: interrupted", file=sys.stderr)
         return 130

@@ -6,7 +6,7 @@ input and output) can raise it without importing the configuration machinery.
 
 from __future__ import annotations
 
-__all__ = ["LatentDriveError", "first_line", "printable"]
+__all__ = ["LatentDriveError", "Terminated", "first_line", "printable"]
 
 
 def printable(text: str) -> str:
@@ -35,3 +35,12 @@ class LatentDriveError(Exception):
         if len(args) == 1 and isinstance(args[0], str):
             args = (printable(args[0]),)
         super().__init__(*args)
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (a batch scheduler's stop, ``kill PID``), raised in the main thread by the
+    command line's handler.
+
+    A subclass of KeyboardInterrupt so that every clean-up an interrupt runs (child
+    processes stopped, nothing half-written) runs on a terminate too; the CLI exits 143.
+    """

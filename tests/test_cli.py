@@ -99,3 +99,26 @@ def test_a_path_in_the_way_is_one_line(monkeypatch: pytest.MonkeyPatch, capsys: 
     assert cli.main(["scenarios"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["latentdrive: error: Is a directory: study/report.md\\nx"]
+
+
+def test_a_terminate_stops_the_command_like_an_interrupt(monkeypatch, capsys):
+    """SIGTERM (a scheduler's stop) raises in the command, so that its clean-ups run; the
+    CLI says so on one line, exits 143 and restores the handler it found."""
+    import os
+    import signal
+    import time
+
+    from latentdrive import cli
+
+    def terminated_midway(args):
+        os.kill(os.getpid(), signal.SIGTERM)
+        time.sleep(30)
+        return 0
+
+    before = signal.getsignal(signal.SIGTERM)
+    monkeypatch.setattr(cli, "_cmd_scenarios", terminated_midway)
+    t0 = time.monotonic()
+    assert main(["scenarios"]) == 143
+    assert time.monotonic() - t0 < 10
+    assert capsys.readouterr().err.strip() == "latentdrive: terminated"
+    assert signal.getsignal(signal.SIGTERM) is before

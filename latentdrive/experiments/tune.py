@@ -280,6 +280,10 @@ def _work(search: Search, worker: int, on_trial: Callable[[], None] | None = Non
             on_trial()
 
 
+#: Seconds an interrupted search gives its workers to stop on their own before terminating them.
+_WORKER_GRACE_S = 10.0
+
+
 def _worker_main(search: Search, worker: int) -> None:
     try:
         _work(search, worker)
@@ -287,6 +291,33 @@ def _worker_main(search: Search, worker: int) -> None:
         # Ctrl-C reaches every worker with the parent, which reports it once; a traceback
         # from each worker would only bury that line.
         raise SystemExit(130) from None
+
+
+def _supervise(procs: list[Any], tick: Callable[[], None], every_s: float = 2.0) -> None:
+    """Call ``tick`` every ``every_s`` seconds until the started ``procs`` have ended.
+
+    Should this loop end by an exception (Ctrl-C, a terminate, an error in ``tick``), the
+    workers still running after a grace period are terminated before it propagates.
+    """
+    try:
+        while any(p.is_alive() for p in procs):
+            time.sleep(every_s)
+            tick()
+    except BaseException:
+        # Ctrl-C reaches the workers with the parent, and they stop on their own; a
+        # terminate (or an error here) does not, and a worker left running would go on
+        # training into OUT with no search waiting for it. Their trials are retried on
+        # resumption.
+        deadline = time.monotonic() + _WORKER_GRACE_S
+        for p in procs:
+            p.join(max(0.0, deadline - time.monotonic()))
+        for p in procs:
+            if p.is_alive():
+                p.terminate()
+        raise
+    finally:
+        for p in procs:
+            p.join()
 
 
 @contextmanager
@@ -325,13 +356,7 @@ def run_search(search: Search, workers: int = 1, progress: bool = True,
                 procs = [ctx.Process(target=_worker_main, args=(search, w), daemon=False) for w in range(workers)]
                 for p in procs:
                     p.start()
-                try:
-                    while any(p.is_alive() for p in procs):
-                        time.sleep(2.0)
-                        tick()
-                finally:
-                    for p in procs:
-                        p.join()
+                _supervise(procs, tick)
                 bad = [w for w, p in enumerate(procs) if p.exitcode != 0]
                 if bad:
                     raise LatentDriveError(f"tune worker(s) {', '.join(map(str, bad))} failed (exit code "

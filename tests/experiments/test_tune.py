@@ -271,3 +271,30 @@ def test_a_search_keeps_its_hash_when_a_setting_is_added() -> None:
     assert search_hash(space, base, 2) == "49234ff209901876"
     paid = base_config(space, None, {"reward.failure": -1.0})
     assert search_hash(space, paid, 2) != "49234ff209901876"
+
+
+@pytest.mark.parametrize(("work_s", "grace_s", "exitcode"), [(60.0, 2.0, -15), (0.5, 20.0, 0)])
+def test_a_stopped_search_stops_its_workers(monkeypatch, work_s, grace_s, exitcode):
+    """A terminate reaches the search's parent only: the workers it started are given a
+    grace period to stop on their own (as they do on Ctrl-C), then terminated, so none runs
+    on orphaned. Regression: they used to keep training into OUT."""
+    import multiprocessing as mp
+    import time
+
+    from latentdrive.errors import Terminated
+    from latentdrive.experiments import tune
+
+    monkeypatch.setattr(tune, "_WORKER_GRACE_S", grace_s)
+    ctx = mp.get_context("spawn")
+    procs = [ctx.Process(target=time.sleep, args=(work_s,)) for _ in range(2)]
+    for p in procs:
+        p.start()
+
+    def terminated() -> None:
+        raise Terminated()
+
+    t0 = time.monotonic()
+    with pytest.raises(Terminated):
+        tune._supervise(procs, terminated, every_s=0.05)
+    assert time.monotonic() - t0 < 30
+    assert [p.exitcode for p in procs] == [exitcode, exitcode]
