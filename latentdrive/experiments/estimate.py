@@ -29,6 +29,7 @@ def step_size(step: Step, epoch_samples: float | None = None) -> tuple[str, floa
     A BNN step's size is the training samples it processes: its epochs times the samples of
     an epoch, which is ``epoch_steps`` batches when capped (whatever the dataset) and the
     training episodes' samples, ``epoch_samples``, otherwise (or when the cap exceeds them).
+    The BNN report's is the held-out samples it scores, for each run and the noisy input.
     The step's config does not hold the dataset's size, so the caller gives it.
     """
     c = step.config
@@ -42,8 +43,7 @@ def step_size(step: Step, epoch_samples: float | None = None) -> tuple[str, floa
             raise ConfigError(f"{step.name}: an uncapped BNN epoch's size needs its dataset's sample count")
         return _bnn_class(c), float(t["pretrain_epochs"] + t["mixed_epochs"]) * per_epoch
     if step.kind == "bnn-report":
-        study = c["study"]
-        return "bnn-report", float(len(c["runs"]) * study["eval_samples"] * len(study["collect"]["scenarios"]))
+        return "bnn-report", float((len(c["runs"]) + 1) * _scored_samples(step, epoch_samples))
     if step.kind == "policy":
         return f"policy:{c['train']['mode']}", float(c["train"]["steps"])
     if step.kind == "evaluate":
@@ -54,6 +54,21 @@ def step_size(step: Step, epoch_samples: float | None = None) -> tuple[str, floa
         p = c["probe"]
         return "probes", float(p["episodes"] * len(p["scenarios"]))
     raise ConfigError(f"no size for step kind {step.kind!r}")
+
+
+def _scored_samples(step: Step, epoch_samples: float | None) -> float:
+    """Held-out samples the BNN report scores per run (and for the noisy input): the first
+    ``score_samples`` of them, or all, whose count follows from the training episodes'
+    samples and ``val_fraction`` (held-out episodes are drawn like training ones)."""
+    study = step.config["study"]
+    cap = float(study.get("score_samples") or 0)
+    vf = float(study["val_fraction"])
+    held = None if epoch_samples is None else epoch_samples * vf / (1.0 - vf)
+    if held is None:
+        if cap:
+            return cap
+        raise ConfigError(f"{step.name}: a report that scores every held-out sample needs its dataset's sample count")
+    return min(cap, held) if cap else held
 
 
 def _bnn_class(c: Mapping[str, Any]) -> str:

@@ -85,6 +85,22 @@ def test_a_bnn_step_is_sized_in_the_training_samples_it_processes() -> None:
     assert estimate_study(uncapped, rates, 1, epoch_samples=100.0).step_hours * 3600 == pytest.approx(20.0)
 
 
+def _report(score_samples: int) -> Step:
+    study = {"score_samples": score_samples, "val_fraction": 0.2}
+    return Step("report", "bnn-report", {"study": study, "runs": {"d8": [8, 0.0], "d16": [16, 0.0]}})
+
+
+def test_the_bnn_report_is_sized_in_the_held_out_samples_it_scores() -> None:
+    # Two runs and the noisy input; 400 training samples at a fifth held out: 100 held out.
+    every, capped = Graph([_report(0)]).steps["report"], Graph([_report(30)]).steps["report"]
+    assert step_size(every, epoch_samples=400.0) == ("bnn-report", 300.0)
+    assert step_size(capped, epoch_samples=400.0) == ("bnn-report", 90.0)
+    assert step_size(capped, epoch_samples=40.0)[1] == 30.0  # 10 held out: fewer than the cap
+    assert step_size(capped)[1] == 90.0
+    with pytest.raises(ConfigError, match="report: a report that scores every held-out sample needs"):
+        step_size(every)
+
+
 def test_capped_and_uncapped_bnn_epochs_estimate_alike(tiny_study: Path) -> None:
     # Long BNNs, so that their hours (rounded to 0.01 h) carry the ratios.
     def bnn_hours(train: dict[str, int]) -> float:
