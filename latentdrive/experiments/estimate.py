@@ -20,7 +20,7 @@ from typing import Any
 from latentdrive.config import ConfigError
 from latentdrive.experiments.graph import Graph, Step, StepRecord
 
-__all__ = ["Estimate", "estimate_study", "measured_rates", "step_size"]
+__all__ = ["Estimate", "estimate_study", "measured_rates", "scored_count", "step_size"]
 
 
 def step_size(step: Step, epoch_samples: float | None = None) -> tuple[str, float]:
@@ -68,7 +68,13 @@ def _scored_samples(step: Step, epoch_samples: float | None) -> float:
         if cap:
             return cap
         raise ConfigError(f"{step.name}: a report that scores every held-out sample needs its dataset's sample count")
-    return min(cap, held) if cap else held
+    return scored_count(held, cap)
+
+
+def scored_count(held: float, score_samples: float) -> float:
+    """Samples the BNN report scores of ``held`` held-out ones: the first ``score_samples``
+    (0 = every one)."""
+    return min(held, score_samples) if score_samples else held
 
 
 def _bnn_class(c: Mapping[str, Any]) -> str:

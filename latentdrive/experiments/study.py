@@ -37,6 +37,7 @@ from latentdrive.config import (
 from latentdrive.evaluate.planner import PlannerConfig
 from latentdrive.evaluate.policies import REFERENCE_POLICIES
 from latentdrive.experiments.bnn import BNNStudyConfig, run_name, study_runs
+from latentdrive.experiments.estimate import scored_count
 from latentdrive.experiments.graph import Graph, Step
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.rl.policy import scenario_hashes
@@ -210,7 +211,7 @@ def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] |
     per_epoch = min(trained, cfg.bnn.train.epoch_steps * cfg.bnn.train.batch_size) if cfg.bnn.train.epoch_steps else trained
     bnn_cost = epochs * per_epoch / 80
     held = samples * cfg.bnn.val_fraction
-    scored = min(held, cfg.bnn.score_samples) if cfg.bnn.score_samples else held
+    scored = scored_count(held, cfg.bnn.score_samples)
     # Settings newer than finished studies stay out of the keys at their old behaviour
     # (graph.LATER_SETTINGS), so those studies keep their keys.
     for name, d, lam in runs:
