@@ -35,6 +35,7 @@ import numpy as np
 
 from latentdrive.config import ConfigError
 from latentdrive.errors import LatentDriveError, first_line
+from latentdrive.experiments.processes import die_with_parent
 from latentdrive.experiments.tune_space import TuneSpace, search_hash, trial_config
 from latentdrive.fileio import read_log
 from latentdrive.rl.config import PolicyTrainConfig
@@ -285,6 +286,7 @@ _WORKER_GRACE_S = 10.0
 
 
 def _worker_main(search: Search, worker: int) -> None:
+    die_with_parent()  # a search killed outright (kill -9) takes its workers with it
     try:
         _work(search, worker)
     except KeyboardInterrupt:

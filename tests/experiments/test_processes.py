@@ -78,3 +78,58 @@ def test_a_job_that_cannot_be_sent_leaves_nothing_running() -> None:
     with pytest.raises(Exception):  # noqa: B017 - pickling a lambda fails with the pickler's own error
         pool.start("lambda", (lambda: 1, (), {}))
     assert not pool.live
+
+
+_ORPHAN_PARENT = """
+import multiprocessing as mp, os, sys, time
+from latentdrive.experiments.processes import Processes
+
+def job(path):
+    with open(path + ".tmp", "w") as f:
+        f.write(str(os.getpid()))
+    os.replace(path + ".tmp", path)
+    time.sleep(120)
+
+if __name__ == "__main__":
+    Processes(mp.get_context(sys.argv[2])).start("sleeper", (job, (sys.argv[1],), {}))
+    time.sleep(120)
+"""
+
+
+def _gone(pid: int) -> bool:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            return f.read().rsplit(")", 1)[1].split()[0] == "Z"  # a zombie has stopped running
+    except FileNotFoundError:
+        return True
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="the parent-death signal is Linux's")
+@pytest.mark.parametrize("method", ["spawn", "forkserver"])
+def test_a_job_dies_with_a_parent_killed_outright(tmp_path, method) -> None:
+    """Regression: a parent killed by SIGKILL cannot stop its jobs; they used to run on,
+    orphaned. The kernel's parent-death signal now ends them."""
+    import signal
+    import subprocess
+    import sys
+
+    script, pid_file = tmp_path / "parent.py", tmp_path / "child.pid"
+    script.write_text(_ORPHAN_PARENT)
+    parent = subprocess.Popen([sys.executable, str(script), str(pid_file), method], cwd=tmp_path)
+    try:
+        deadline = time.monotonic() + 120
+        while not pid_file.exists():
+            assert parent.poll() is None and time.monotonic() < deadline, "the job never started"
+            time.sleep(0.1)
+        child = int(pid_file.read_text())
+        assert not _gone(child)
+        parent.send_signal(signal.SIGKILL)
+        parent.wait()
+        deadline = time.monotonic() + 30
+        while not _gone(child) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert _gone(child)
+    finally:
+        parent.kill()
+        if pid_file.exists() and not _gone(int(pid_file.read_text())):
+            os.kill(int(pid_file.read_text()), signal.SIGKILL)

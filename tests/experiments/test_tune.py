@@ -298,3 +298,15 @@ def test_a_stopped_search_stops_its_workers(monkeypatch, work_s, grace_s, exitco
         tune._supervise(procs, terminated, every_s=0.05)
     assert time.monotonic() - t0 < 30
     assert [p.exitcode for p in procs] == [exitcode, exitcode]
+
+
+def test_a_worker_watches_its_parent(monkeypatch):
+    """A search killed outright (kill -9) cannot stop its workers; each worker watches its
+    parent (tests/experiments/test_processes.py tests the watch) and stops with it."""
+    from latentdrive.experiments import tune
+
+    calls: list[str] = []
+    monkeypatch.setattr(tune, "die_with_parent", lambda: calls.append("watch"))
+    monkeypatch.setattr(tune, "_work", lambda search, worker: calls.append(f"work {worker}"))
+    tune._worker_main(None, 3)  # type: ignore[arg-type]
+    assert calls == ["watch", "work 3"]
