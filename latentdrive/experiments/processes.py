@@ -55,10 +55,14 @@ def _child(conn: Any, job: Job) -> None:
     die_with_parent()
     fn, args, kwargs = job
     try:
-        conn.send((True, fn(*args, **kwargs)))
+        msg = (True, fn(*args, **kwargs))
     except BaseException as exc:  # reported by the parent with the job's name
-        conn.send((False, first_line(exc) if isinstance(exc, LatentDriveError) else
-                   f"{type(exc).__name__}: {first_line(exc)}"))
+        msg = (False, first_line(exc) if isinstance(exc, LatentDriveError) else
+               f"{type(exc).__name__}: {first_line(exc)}")
+    try:
+        conn.send(msg)
+    except (BrokenPipeError, ConnectionResetError):
+        pass  # the parent stopped listening (interrupted, terminated): no one is left to tell
     finally:
         conn.close()
 

@@ -133,3 +133,21 @@ def test_a_job_dies_with_a_parent_killed_outright(tmp_path, method) -> None:
         parent.kill()
         if pid_file.exists() and not _gone(int(pid_file.read_text())):
             os.kill(int(pid_file.read_text()), signal.SIGKILL)
+
+
+def test_a_job_whose_parent_stopped_listening_ends_quietly() -> None:
+    """Regression: a step finishing just as its study was terminated printed a
+    BrokenPipeError traceback under the parent's one-line message."""
+    import multiprocessing as mp
+
+    from latentdrive.experiments.processes import _child
+
+    for fn in (int, _fails):
+        recv, send = mp.Pipe(duplex=False)
+        recv.close()
+        _child(send, (fn, (), {}))  # raises nothing
+        assert send.closed
+
+
+def _fails() -> None:
+    raise LatentDriveError("no")
