@@ -37,11 +37,20 @@ def seed_interval(scores: ArrayLike, *, reps: int = 2000, seed: int = 0, alpha: 
     # Imported here: rliable pulls in arch and pandas, which only aggregation needs.
     from rliable import library as rly
 
-    with warnings.catch_warnings():
-        # arch warns that RandomState will go; rliable still passes one, which keeps this seeded.
-        warnings.simplefilter("ignore", FutureWarning)
-        _, cis = rly.get_interval_estimates({"x": x}, lambda s: np.array([s.mean()]), reps=reps,
-                                            confidence_interval_size=1 - alpha,
-                                            random_state=np.random.RandomState(seed))
+    # rliable's StratifiedBootstrap draws its resamples from numpy's global generator, not
+    # from the random_state it is given (rliable 1.2.0, ``update_indices``): seed the global
+    # one for the call and put its state back, so that the same scores give the same
+    # interval and the caller's own random stream is left as it was.
+    saved = np.random.get_state()
+    np.random.seed(seed)
+    try:
+        with warnings.catch_warnings():
+            # arch warns that RandomState will go; rliable still passes one on.
+            warnings.simplefilter("ignore", FutureWarning)
+            _, cis = rly.get_interval_estimates({"x": x}, lambda s: np.array([s.mean()]), reps=reps,
+                                                confidence_interval_size=1 - alpha,
+                                                random_state=np.random.RandomState(seed))
+    finally:
+        np.random.set_state(saved)
     lo, hi = (float(v) for v in np.asarray(cis["x"]).reshape(2))
     return {"mean": mean, "lo": lo, "hi": hi, "seeds": int(x.shape[0])}
