@@ -41,8 +41,8 @@ def seed_interval(scores: ArrayLike, *, reps: int = 2000, seed: int = 0, alpha: 
     # from the random_state it is given (rliable 1.2.0, ``update_indices``): seed the global
     # one for the call and put its state back, so that the same scores give the same
     # interval and the caller's own random stream is left as it was.
-    saved = np.random.get_state()
-    np.random.seed(seed)
+    saved = np.random.get_state()  # noqa: NPY002 (rliable's generator is the global one)
+    np.random.seed(seed)  # noqa: NPY002
     try:
         with warnings.catch_warnings():
             # arch warns that RandomState will go; rliable still passes one on.
@@ -51,6 +51,6 @@ def seed_interval(scores: ArrayLike, *, reps: int = 2000, seed: int = 0, alpha: 
                                                 confidence_interval_size=1 - alpha,
                                                 random_state=np.random.RandomState(seed))
     finally:
-        np.random.set_state(saved)
+        np.random.set_state(saved)  # noqa: NPY002
     lo, hi = (float(v) for v in np.asarray(cis["x"]).reshape(2))
     return {"mean": mean, "lo": lo, "hi": hi, "seeds": int(x.shape[0])}

@@ -1,4 +1,4 @@
-"""``latentdrive train-policy``, ``latentdrive evaluate`` and ``latentdrive curve``."""
+"""``latentdrive train-policy``, ``latentdrive evaluate``, ``latentdrive aggregate`` and ``latentdrive curve``."""
 
 from __future__ import annotations
 
@@ -214,6 +214,19 @@ def _labelled(arg: str) -> tuple[str | None, str]:
     return label, run
 
 
+def _cmd_aggregate(args: argparse.Namespace) -> int:
+    from latentdrive.evaluate.seeds import aggregate_seeds, format_seeds, read_seed_eval
+    from latentdrive.experiments.policy import write_json
+
+    if args.json and (problem := output_problem(args.json)):
+        raise ConfigError(f"--json {args.json}: {problem}")
+    agg = aggregate_seeds([read_seed_eval(f) for f in args.files])
+    print(format_seeds(agg))
+    if args.json:
+        print(f"wrote {write_json(args.json, agg)}")
+    return 0
+
+
 def _cmd_curve(args: argparse.Namespace) -> int:
     from latentdrive.evaluate.planner import planner_config_from_args
     from latentdrive.evaluate.policies import check_references
@@ -251,7 +264,7 @@ def _cmd_curve(args: argparse.Namespace) -> int:
 
 
 def add_policy_parsers(sub: Any) -> None:
-    """Add ``train-policy``, ``evaluate`` and ``curve`` to the CLI's sub-parsers."""
+    """Add ``train-policy``, ``evaluate``, ``aggregate`` and ``curve`` to the CLI's sub-parsers."""
     s = sub.add_parser("train-policy", help="train a driving policy (multi-agent double DQN on a VFAN, or the imitation reference)",
                        description="Train a policy in RUN. Interrupt it at any time; --resume continues from the "
                        "last checkpoint and ends with the weights an uninterrupted run would have.")
@@ -300,6 +313,15 @@ def add_policy_parsers(sub: Any) -> None:
                    help="lookahead planner setting, repeatable (--set planner.depth=5 --set planner.rounds=1)")
     s.add_argument("-q", "--quiet", action="store_true")
     s.set_defaults(func=_cmd_evaluate)
+
+    s = sub.add_parser("aggregate", help="one setting's training seeds: mean failure rates with intervals over seeds",
+                       description="Read one `evaluate --json` result per training seed of one setting (each "
+                       "scored on the same episodes) and print, per scenario and mixed, each seed's failure "
+                       "rate, their mean with rliable's 95%% stratified-bootstrap interval over seeds and, "
+                       "where the files hold a --compare, each seed's paired difference and McNemar p.")
+    s.add_argument("files", nargs="+", metavar="EVAL_JSON", help="`latentdrive evaluate ... --json FILE` results, one per seed")
+    s.add_argument("--json", default="", help="also write the aggregate to this JSON file")
+    s.set_defaults(func=_cmd_aggregate)
 
     s = sub.add_parser("curve", help="learning curves: held-out failure rate against agent-transitions and minutes",
                        description="Draw the periodic held-out evaluations of policy runs (their eval.csv; train "

@@ -1,3 +1,4 @@
+# ruff: noqa: NPY002  (the global generator is what these tests are about)
 from __future__ import annotations
 
 import numpy as np

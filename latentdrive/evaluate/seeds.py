@@ -1,0 +1,159 @@
+"""Training seeds of one setting, each evaluated on its own, read as one result.
+
+``latentdrive evaluate RUN --compare B --json FILE`` scores one trained policy; a setting is
+judged over several training seeds. :func:`aggregate_seeds` reads one such file per seed
+and gives, per scenario and mixed, each seed's failure rate, their mean with rliable's
+stratified-bootstrap interval over seeds (:func:`latentdrive.evaluate.aggregate.seed_interval`;
+the mixed one resamples seeds within each scenario), and each seed's paired difference to
+its ``--compare`` with McNemar's exact p-value. The files must score the same evaluation
+episodes; a file that is not an ``evaluate --json`` result, or scores other episodes, is
+refused with its name.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from latentdrive.config import ConfigError
+from latentdrive.evaluate.aggregate import seed_interval
+from latentdrive.fileio import read_json
+
+__all__ = ["SeedEval", "aggregate_seeds", "format_seeds", "read_seed_eval"]
+
+MIXED = "mixed"
+
+
+@dataclass(frozen=True)
+class SeedEval:
+    """One seed's ``evaluate --json`` result: failure rates per scenario and mixed."""
+
+    path: str
+    policy: str
+    evaluation: dict[str, Any]
+    failure: dict[str, float]
+    #: The ``--compare`` policy or run (None without one) and its paired tests per scenario.
+    compare: str | None
+    tests: dict[str, dict[str, Any]]
+
+
+def _at(doc: object, *keys: str) -> Any:
+    """``doc[k0][k1]...``, or None where a level is missing or not an object."""
+    for k in keys:
+        if not isinstance(doc, dict):
+            return None
+        doc = doc.get(k)
+    return doc
+
+
+def _need(cond: bool, path: str | Path, what: str) -> None:
+    if not cond:
+        raise ConfigError(f"{path}: not a `latentdrive evaluate --json` result ({what})")
+
+
+def _number(x: object) -> bool:
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def read_seed_eval(path: str | Path) -> SeedEval:
+    """Read one ``evaluate --json`` file; :class:`ConfigError` naming it if it is not one."""
+    doc = read_json(path, what="evaluation")
+    ev = _at(doc, "config", "evaluation")
+    scenarios = _at(ev, "scenarios")
+    _need(isinstance(scenarios, list) and bool(scenarios), path, "no evaluation set")
+    names = [*(str(s) for s in scenarios), MIXED]
+    failure: dict[str, float] = {}
+    for name in names:
+        rate = _at(doc, MIXED, "failure_rate", "rate") if name == MIXED else \
+            _at(doc, "scenarios", name, "failure_rate", "rate")
+        _need(_number(rate) and 0.0 <= rate <= 1.0, path, f"no failure rate for {name}")
+        failure[name] = float(rate)
+    compare, tests = None, {}
+    if _at(doc, "compare") is not None:
+        compare = str(_at(doc, "compare", "b"))
+        for name in names:
+            t = _at(doc, "compare", "tests", name, "failed")
+            _need(all(_number(_at(t, k)) for k in ("rate_b", "difference", "p_value")), path,
+                  f"no paired test for {name}")
+            tests[name] = t
+    return SeedEval(str(path), str(_at(doc, "policy")), ev, failure, compare, tests)
+
+
+def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str, Any]:
+    """Mean failure rates over ``evals`` (one per training seed) with intervals over seeds.
+
+    Returns ``{"evaluation", "policies", "compare", "rows"}``; ``rows[scenario]`` holds
+    ``rates`` (per seed), ``mean``/``lo``/``hi`` (rliable, over seeds) and, with a comparison,
+    ``compare_rates``, ``differences`` and ``p_values`` per seed and the mean difference
+    with its interval. Raises :class:`ConfigError` when the files score different episodes
+    or some compare and others do not.
+    """
+    if not evals:
+        raise ConfigError("no evaluation files given")
+    head = evals[0]
+    for e in evals[1:]:
+        if e.evaluation != head.evaluation:
+            raise ConfigError(f"{e.path}: scores other episodes than {head.path} (evaluation set "
+                              f"{e.evaluation} against {head.evaluation}); evaluate every seed alike")
+        if (e.compare is None) != (head.compare is None):
+            raise ConfigError(f"{e.path}: {'has no' if e.compare is None else 'has a'} --compare, "
+                              f"unlike {head.path}")
+    names = [*head.evaluation["scenarios"], MIXED]
+    rows: dict[str, dict[str, Any]] = {}
+    for name in names:
+        rates = [e.failure[name] for e in evals]
+        if name == MIXED:
+            # Stratified by scenario: seeds are resampled within each, as rliable does per task.
+            scores: Any = [[e.failure[s] for s in head.evaluation["scenarios"]] for e in evals]
+        else:
+            scores = rates
+        row: dict[str, Any] = {"rates": rates, **seed_interval(scores, reps=reps)}
+        if head.compare is not None:
+            diffs = [float(e.tests[name]["difference"]) for e in evals]
+            d = seed_interval(diffs, reps=reps)
+            row.update(compare_rates=[float(e.tests[name]["rate_b"]) for e in evals], differences=diffs,
+                       p_values=[float(e.tests[name]["p_value"]) for e in evals],
+                       difference={"mean": d["mean"], "lo": d["lo"], "hi": d["hi"]})
+        rows[name] = row
+    return {"evaluation": head.evaluation, "policies": [e.policy for e in evals],
+            "compare": sorted({e.compare for e in evals if e.compare is not None}), "rows": rows}
+
+
+def _pct(x: float, sign: str = "") -> str:
+    return f"{100 * x:{sign}.1f}"
+
+
+def _interval(mean: float, lo: float | None, hi: float | None, sign: str = "") -> str:
+    if lo is None or hi is None:
+        return _pct(mean, sign)
+    return f"{_pct(mean, sign)} [{_pct(lo, sign)}, {_pct(hi, sign)}]"
+
+
+def format_seeds(agg: dict[str, Any]) -> str:
+    """The table ``latentdrive aggregate`` prints: failure % per scenario, per seed and mean."""
+    n = len(agg["policies"])
+    ev = agg["evaluation"]
+    lines = [f"{n} training seed(s): {', '.join(agg['policies'])}",
+             f"{ev.get('episodes_per_scenario')} evaluation episodes per scenario (reset seed {ev.get('reset_seed')}); "
+             "failure %, the mean over seeds with rliable's 95% stratified-bootstrap interval over seeds"]
+    has_cmp = bool(agg["compare"])
+    head = ["scenario", *[f"seed {i + 1}" for i in range(n)], "mean [95% CI]"]
+    if has_cmp:
+        head += [f"B = {', '.join(agg['compare'])}", "A−B, mean [95% CI]", "p per seed (McNemar)"]
+    table = [head]
+    for name, row in agg["rows"].items():
+        cells = [name, *[_pct(r) for r in row["rates"]], _interval(row["mean"], row["lo"], row["hi"])]
+        if has_cmp:
+            b = sorted(set(row["compare_rates"]))
+            d = row["difference"]
+            cells += [" / ".join(_pct(x) for x in b), _interval(d["mean"], d["lo"], d["hi"], "+"),
+                      " ".join(f"{p:.2g}" for p in row["p_values"])]
+        table.append(cells)
+    widths = [max(len(r[i]) for r in table) for i in range(len(head))]
+    out = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in table]
+    out.insert(1, "  ".join("-" * w for w in widths))
+    if n < 3:
+        lines.append("note: an interval over fewer than 3 seeds says little")
+    return "\n".join(lines + out)
