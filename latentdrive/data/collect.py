@@ -50,6 +50,7 @@ from latentdrive.data.shards import (
     write_shard,
 )
 from latentdrive.env import EnvConfig
+from latentdrive.lifetime import die_with_parent
 from latentdrive.rollout import rollout, scene_policy
 from latentdrive.runlock import dir_lock
 from latentdrive.vec import DrivingVecEnv
@@ -240,6 +241,12 @@ def collect(cfg: CollectConfig, out_dir: str | Path, progress: bool = True) -> C
         return summary
 
 
+def worker_pool(workers: int) -> ProcessPoolExecutor:
+    """Spawned collection workers, each ending with the process that started them."""
+    return ProcessPoolExecutor(max_workers=workers, mp_context=multiprocessing.get_context("spawn"),
+                               initializer=die_with_parent)
+
+
 def _execute(jobs: list[_Job], workers: int) -> Iterator[_UnitResult]:
     """Results of ``jobs`` as they complete (in-process for one worker)."""
     if workers <= 1 or len(jobs) <= 1:
@@ -250,8 +257,7 @@ def _execute(jobs: list[_Job], workers: int) -> Iterator[_UnitResult]:
     # writes some driver parameters on classes) is inherited from the parent. An executor
     # rather than multiprocessing.Pool: when a worker dies (killed, out of memory, or a
     # script without a __main__ guard) it fails instead of respawning workers forever.
-    ex = ProcessPoolExecutor(max_workers=min(workers, len(jobs)),
-                             mp_context=multiprocessing.get_context("spawn"))
+    ex = worker_pool(min(workers, len(jobs)))
     try:
         futures = [ex.submit(_run_unit, job) for job in jobs]
         for fut in as_completed(futures):

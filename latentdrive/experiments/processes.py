@@ -10,17 +10,16 @@ their last checkpoints when run again.
 
 from __future__ import annotations
 
+import contextlib
 import multiprocessing as mp
-import os
-import signal
-import threading
 from collections.abc import Callable, Mapping, Sequence
 from multiprocessing.connection import wait as mp_wait
 from typing import Any
 
 from latentdrive.errors import LatentDriveError, first_line
+from latentdrive.lifetime import die_with_parent
 
-__all__ = ["Job", "ProcessDied", "Processes", "die_with_parent", "run_processes"]
+__all__ = ["Job", "ProcessDied", "Processes", "run_processes"]
 
 #: ``(function, args, kwargs)``: a module-level function (sent to the child by reference).
 Job = tuple[Callable[..., Any], tuple[Any, ...], Mapping[str, Any]]
@@ -30,39 +29,25 @@ class ProcessDied(LatentDriveError):
     """A job's process ended without sending a result (killed, out of memory, ``os._exit``)."""
 
 
-def die_with_parent() -> None:
-    """Have this multiprocessing child terminated as soon as the process that started it ends.
-
-    A parent stopped by Ctrl-C or a terminate stops its children itself; one killed outright
-    (``kill -9``, the out-of-memory killer) cannot, and its children would run on, orphaned,
-    writing into a folder no one waits on. A daemon thread waits on the parent's sentinel
-    and sends this process SIGTERM when it fires. The sentinel, not the kernel's
-    parent-death signal: under the forkserver the OS parent is the server, which outlives
-    the process that asked for the child. Does nothing outside a multiprocessing child.
-    """
-    parent = mp.parent_process()
-    if parent is None:
-        return
-
-    def watch() -> None:
-        mp_wait([parent.sentinel])
-        os.kill(os.getpid(), signal.SIGTERM)
-
-    threading.Thread(target=watch, name="latentdrive parent watch", daemon=True).start()
+def _error(exc: BaseException) -> tuple[bool, str]:
+    return False, first_line(exc) if isinstance(exc, LatentDriveError) else f"{type(exc).__name__}: {first_line(exc)}"
 
 
 def _child(conn: Any, job: Job) -> None:
     die_with_parent()
     fn, args, kwargs = job
     try:
-        msg = (True, fn(*args, **kwargs))
+        msg: tuple[bool, Any] = (True, fn(*args, **kwargs))
     except BaseException as exc:  # reported by the parent with the job's name
-        msg = (False, first_line(exc) if isinstance(exc, LatentDriveError) else
-               f"{type(exc).__name__}: {first_line(exc)}")
+        msg = _error(exc)
+    gone = (BrokenPipeError, ConnectionResetError)  # the parent stopped listening: no one to tell
     try:
         conn.send(msg)
-    except (BrokenPipeError, ConnectionResetError):
-        pass  # the parent stopped listening (interrupted, terminated): no one is left to tell
+    except gone:
+        pass
+    except Exception as exc:  # a result that cannot be sent (unpicklable): pickling fails
+        with contextlib.suppress(*gone):  # before a byte is written, so the pipe is still clean
+            conn.send(_error(exc))
     finally:
         conn.close()
 

@@ -35,9 +35,9 @@ import numpy as np
 
 from latentdrive.config import ConfigError
 from latentdrive.errors import LatentDriveError, first_line
-from latentdrive.experiments.processes import die_with_parent
 from latentdrive.experiments.tune_space import TuneSpace, search_hash, trial_config
 from latentdrive.fileio import read_log
+from latentdrive.lifetime import die_with_parent
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import CHECKPOINT
 from latentdrive.rl.runfolder import EVAL_COLUMNS, EVALS

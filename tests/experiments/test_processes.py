@@ -80,61 +80,6 @@ def test_a_job_that_cannot_be_sent_leaves_nothing_running() -> None:
     assert not pool.live
 
 
-_ORPHAN_PARENT = """
-import multiprocessing as mp, os, sys, time
-from latentdrive.experiments.processes import Processes
-
-def job(path):
-    with open(path + ".tmp", "w") as f:
-        f.write(str(os.getpid()))
-    os.replace(path + ".tmp", path)
-    time.sleep(120)
-
-if __name__ == "__main__":
-    Processes(mp.get_context(sys.argv[2])).start("sleeper", (job, (sys.argv[1],), {}))
-    time.sleep(120)
-"""
-
-
-def _gone(pid: int) -> bool:
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            return f.read().rsplit(")", 1)[1].split()[0] == "Z"  # a zombie has stopped running
-    except FileNotFoundError:
-        return True
-
-
-@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="the parent-death signal is Linux's")
-@pytest.mark.parametrize("method", ["spawn", "forkserver"])
-def test_a_job_dies_with_a_parent_killed_outright(tmp_path, method) -> None:
-    """Regression: a parent killed by SIGKILL cannot stop its jobs; they used to run on,
-    orphaned. The kernel's parent-death signal now ends them."""
-    import signal
-    import subprocess
-    import sys
-
-    script, pid_file = tmp_path / "parent.py", tmp_path / "child.pid"
-    script.write_text(_ORPHAN_PARENT)
-    parent = subprocess.Popen([sys.executable, str(script), str(pid_file), method], cwd=tmp_path)
-    try:
-        deadline = time.monotonic() + 120
-        while not pid_file.exists():
-            assert parent.poll() is None and time.monotonic() < deadline, "the job never started"
-            time.sleep(0.1)
-        child = int(pid_file.read_text())
-        assert not _gone(child)
-        parent.send_signal(signal.SIGKILL)
-        parent.wait()
-        deadline = time.monotonic() + 30
-        while not _gone(child) and time.monotonic() < deadline:
-            time.sleep(0.1)
-        assert _gone(child)
-    finally:
-        parent.kill()
-        if pid_file.exists() and not _gone(int(pid_file.read_text())):
-            os.kill(int(pid_file.read_text()), signal.SIGKILL)
-
-
 def test_a_job_whose_parent_stopped_listening_ends_quietly() -> None:
     """Regression: a step finishing just as its study was terminated printed a
     BrokenPipeError traceback under the parent's one-line message."""
@@ -151,3 +96,16 @@ def test_a_job_whose_parent_stopped_listening_ends_quietly() -> None:
 
 def _fails() -> None:
     raise LatentDriveError("no")
+
+
+def _unpicklable() -> object:
+    import threading
+
+    return threading.Lock()
+
+
+def test_a_result_that_cannot_be_sent_is_reported_as_the_jobs_error() -> None:
+    """Regression: an unpicklable result printed a traceback in the child and was reported
+    as a dead process ('run the same command again'), which rerunning cannot mend."""
+    with pytest.raises(LatentDriveError, match="j: TypeError: cannot pickle"):
+        run_processes({"j": (_unpicklable, (), {})}, workers=1)
