@@ -24,7 +24,8 @@ def seed_interval(scores: ArrayLike, *, reps: int = 2000, seed: int = 0, alpha: 
 
     Returns ``{"mean", "lo", "hi", "seeds"}``; with one seed there is nothing to resample,
     and ``lo``/``hi`` are None (say so rather than print a zero-width interval). The
-    bootstrap draws from ``numpy.random.RandomState(seed)``: same scores, same interval.
+    bootstrap draws from numpy's global generator seeded with ``seed`` for the call (its state
+    is restored after): same scores, same interval.
     """
     x = np.asarray(scores, dtype=np.float64)
     if x.ndim == 1:

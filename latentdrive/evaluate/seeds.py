@@ -4,8 +4,8 @@
 judged over several training seeds. :func:`aggregate_seeds` reads one such file per seed
 and gives, per scenario and mixed, each seed's failure rate, their mean with rliable's
 stratified-bootstrap interval over seeds (:func:`latentdrive.evaluate.aggregate.seed_interval`;
-the mixed one resamples seeds within each scenario), and each seed's paired difference to
-its ``--compare`` with McNemar's exact p-value. The files must score the same evaluation
+the mixed ones resample seeds within each scenario), and each seed's paired difference to
+its ``--compare`` with McNemar's exact p-value, the mean difference with its interval. The files must score the same evaluation
 episodes; a file that is not an ``evaluate --json`` result, or scores other episodes, is
 refused with its name.
 """
@@ -19,6 +19,7 @@ from typing import Any
 
 from latentdrive.config import ConfigError
 from latentdrive.evaluate.aggregate import seed_interval
+from latentdrive.evaluate.policies import REFERENCE_POLICIES
 from latentdrive.fileio import read_json
 
 __all__ = ["SeedEval", "aggregate_seeds", "format_seeds", "read_seed_eval"]
@@ -62,8 +63,9 @@ def read_seed_eval(path: str | Path) -> SeedEval:
     doc = read_json(path, what="evaluation")
     ev = _at(doc, "config", "evaluation")
     scenarios = _at(ev, "scenarios")
-    _need(isinstance(scenarios, list) and bool(scenarios), path, "no evaluation set")
-    names = [*(str(s) for s in scenarios), MIXED]
+    _need(isinstance(scenarios, list) and bool(scenarios) and all(isinstance(s, str) for s in scenarios)
+          and len(set(scenarios)) == len(scenarios) and MIXED not in scenarios, path, "no evaluation set")
+    names = [*scenarios, MIXED]
     failure: dict[str, float] = {}
     for name in names:
         rate = _at(doc, MIXED, "failure_rate", "rate") if name == MIXED else \
@@ -93,6 +95,19 @@ def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str,
     if not evals:
         raise ConfigError("no evaluation files given")
     head = evals[0]
+    seen: dict[str, str] = {}
+    for e in evals:
+        for key in (str(Path(e.path).resolve()), f"policy {e.policy}"):
+            if key in seen:
+                raise ConfigError(f"{e.path}: the same {'policy' if key.startswith('policy ') else 'file'} as "
+                                  f"{seen[key]}; give each training seed once")
+            seen[key] = e.path
+    compares = {e.compare for e in evals if e.compare is not None}
+    if len(compares) > 1 and compares & set(REFERENCE_POLICIES):
+        # Each seed against its own run (raw seed k against latent seed k) is a pairing;
+        # seeds against different reference drivers are not one comparison.
+        raise ConfigError(f"the files compare against different policies ({', '.join(sorted(map(str, compares)))}); "
+                          "compare every seed with the same reference")
     for e in evals[1:]:
         if e.evaluation != head.evaluation:
             raise ConfigError(f"{e.path}: scores other episodes than {head.path} (evaluation set "
@@ -112,7 +127,8 @@ def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str,
         row: dict[str, Any] = {"rates": rates, **seed_interval(scores, reps=reps)}
         if head.compare is not None:
             diffs = [float(e.tests[name]["difference"]) for e in evals]
-            d = seed_interval(diffs, reps=reps)
+            d = seed_interval([[float(e.tests[s]["difference"]) for s in head.evaluation["scenarios"]]
+                               for e in evals] if name == MIXED else diffs, reps=reps)
             row.update(compare_rates=[float(e.tests[name]["rate_b"]) for e in evals], differences=diffs,
                        p_values=[float(e.tests[name]["p_value"]) for e in evals],
                        difference={"mean": d["mean"], "lo": d["lo"], "hi": d["hi"]})
@@ -154,6 +170,9 @@ def format_seeds(agg: dict[str, Any]) -> str:
     widths = [max(len(r[i]) for r in table) for i in range(len(head))]
     out = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in table]
     out.insert(1, "  ".join("-" * w for w in widths))
-    if n < 3:
-        lines.append("note: an interval over fewer than 3 seeds says little")
+    if n < 5:
+        # Each resample draws from n values: with 3 seeds all three land on the lowest with
+        # probability 1/27 > 2.5%, so a percentile interval is at most the seeds' range.
+        lines.append(f"note: with {n} seed(s) an interval over seeds is at most the seeds' range and covers less "
+                     "than 95%; read each seed's own test beside it")
     return "\n".join(lines + out)

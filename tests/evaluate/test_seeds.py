@@ -71,19 +71,54 @@ def test_the_command_prints_the_table_and_writes_json(tmp_path, capsys) -> None:
 
 
 def test_seeds_scored_on_other_episodes_are_refused(tmp_path, capsys) -> None:
-    files = _files(tmp_path, [_doc(SEEDS[0], RULE), _doc(SEEDS[1], RULE, reset_seed=7)])
+    files = _files(tmp_path, [_doc(SEEDS[0], RULE), _doc(SEEDS[1], RULE, reset_seed=7, policy="runs/s1")])
     assert main(["aggregate", *map(str, files)]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "s1.json: scores other episodes" in err[0]
 
 
 def test_a_mix_of_compared_and_uncompared_seeds_is_refused(tmp_path) -> None:
-    files = _files(tmp_path, [_doc(SEEDS[0], RULE), _doc(SEEDS[1])])
+    files = _files(tmp_path, [_doc(SEEDS[0], RULE), _doc(SEEDS[1], policy="runs/s1")])
     with pytest.raises(ConfigError, match=r"s1\.json: has no --compare"):
         aggregate_seeds([read_seed_eval(f) for f in files])
 
 
-@pytest.mark.parametrize("text", ["[1, 2]", "{}", '{"config": [1]}', '{"config": {"evaluation": {"scenarios": []}}}', '{"config": {"evaluation": {"scenarios": ["merge"]}}}', "not json"])
+def test_a_seed_given_twice_is_refused(tmp_path) -> None:
+    a, b = _files(tmp_path, [_doc(SEEDS[0], RULE, policy="runs/s0"), _doc(SEEDS[1], RULE, policy="runs/s0")])
+    with pytest.raises(ConfigError, match="the same file"):
+        aggregate_seeds([read_seed_eval(a), read_seed_eval(a)])
+    with pytest.raises(ConfigError, match="the same policy"):
+        aggregate_seeds([read_seed_eval(a), read_seed_eval(b)])
+
+
+def test_seeds_against_different_reference_drivers_are_refused(tmp_path) -> None:
+    files = _files(tmp_path, [_doc(SEEDS[0], RULE, policy="runs/s0"), _doc(SEEDS[1], RULE, policy="runs/s1")])
+    doc = json.loads(files[1].read_text())
+    doc["compare"]["b"] = "plan"
+    files[1].write_text(json.dumps(doc))
+    with pytest.raises(ConfigError, match="different policies"):
+        aggregate_seeds([read_seed_eval(f) for f in files])
+    doc["compare"]["b"] = "runs/raw-s1"  # each seed against its own run is a pairing
+    files[1].write_text(json.dumps(doc))
+    first = json.loads(files[0].read_text())
+    first["compare"]["b"] = "runs/raw-s0"
+    files[0].write_text(json.dumps(first))
+    assert aggregate_seeds([read_seed_eval(f) for f in files])["compare"] == ["runs/raw-s0", "runs/raw-s1"]
+
+
+def test_the_mixed_difference_is_resampled_within_scenarios(tmp_path) -> None:
+    """Its interval is built like the mixed failure rate's, from the scenarios' differences."""
+    files = _files(tmp_path, [_doc(r, RULE, policy=f"runs/s{i}") for i, r in enumerate(SEEDS)])
+    mixed = aggregate_seeds([read_seed_eval(f) for f in files])["rows"]["mixed"]
+    # Merge's differences (-0.4, -0.5, -0.3) and highway's (0.05, 0.15, -0.05) recombine
+    # across seeds: the interval reaches past the per-seed mixed differences (all -0.175).
+    assert mixed["differences"] == pytest.approx([-0.175] * 3)
+    assert mixed["difference"]["lo"] < -0.175 < mixed["difference"]["hi"]
+
+
+@pytest.mark.parametrize("text", ["[1, 2]", "{}", '{"config": {"evaluation": {"scenarios": [1, 2]}}}',
+                                  '{"config": {"evaluation": {"scenarios": [["a"]]}}}',
+                                  '{"config": {"evaluation": {"scenarios": ["mixed"]}}}', '{"config": [1]}', '{"config": {"evaluation": {"scenarios": []}}}', '{"config": {"evaluation": {"scenarios": ["merge"]}}}', "not json"])
 def test_a_file_that_is_not_an_evaluation_is_named(tmp_path, capsys, text) -> None:
     bad = tmp_path / "bad.json"
     bad.write_text(text)
