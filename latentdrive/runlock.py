@@ -18,6 +18,7 @@ import sys
 import threading
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 from latentdrive.config import LatentDriveError
 
@@ -26,7 +27,7 @@ try:
 except ImportError:  # pragma: no cover - not on POSIX
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["LOCK_NAME", "DirectoryInUse", "dir_lock"]
+__all__ = ["LOCK_NAME", "DirectoryInUse", "Turn", "dir_lock"]
 
 #: The lock file's name; dataset and run directories ignore it.
 LOCK_NAME = ".latentdrive.lock"
@@ -98,3 +99,41 @@ def dir_lock(directory: str | Path, what: str) -> Iterator[None]:
             with _held_guard:
                 del _held[key]
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+class Turn:
+    """A blocking, exclusive ``flock`` on ``path`` that the processes of one machine take in
+    turn: :meth:`acquire` waits for it, :meth:`release` (or leaving the ``with`` block, or
+    the process ending) passes it on. Unlike :func:`dir_lock` it is released wherever the
+    holder decides, not at the end of a block. Unlocked where ``flock`` is missing or refused.
+    """
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self._file: Any = None
+
+    def acquire(self) -> None:
+        if fcntl is None or self._file is not None:  # pragma: no cover - not on POSIX
+            return
+        f = self.path.open("a")
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_EX)
+        except OSError as exc:
+            f.close()
+            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+                raise
+            return
+        self._file = f
+
+    def release(self) -> None:
+        if self._file is not None:
+            fcntl.flock(self._file.fileno(), fcntl.LOCK_UN)
+            self._file.close()
+            self._file = None
+
+    def __enter__(self) -> Turn:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()

@@ -56,3 +56,28 @@ def test_training_refuses_a_run_directory_in_use(tmp_path: Path) -> None:
             train_bnn(cfg, model, fn, None, run, progress=False)
     assert sorted(p.name for p in run.iterdir()) == [LOCK_NAME]
     assert np.isfinite(train_bnn(cfg, model, fn, None, run, progress=False)["train_loss"])
+
+
+def test_a_turn_is_taken_by_one_holder_at_a_time(tmp_path):
+    """``Turn``: the second taker waits until the first passes it on, wherever it does."""
+    import threading
+    import time
+
+    from latentdrive.runlock import Turn
+
+    first, second = Turn(tmp_path / "turn.lock"), Turn(tmp_path / "turn.lock")
+    order: list[str] = []
+    first.acquire()
+
+    def take() -> None:
+        with second:
+            order.append("second")
+
+    t = threading.Thread(target=take)
+    t.start()
+    time.sleep(0.3)
+    order.append("first releases")
+    first.release()
+    t.join(10)
+    assert order == ["first releases", "second"]
+    first.release()  # releasing what is not held does nothing

@@ -59,6 +59,8 @@ HEARTBEAT_S = 60
 GRACE_S = 300
 #: Retries of an interrupted trial.
 MAX_RETRY = 2
+#: The lock file in OUT that the workers of one machine take in turn to claim a trial.
+TURN_LOCK = ".tune-turn.lock"
 
 
 @dataclass(frozen=True)
@@ -269,14 +271,29 @@ def _sampler(search: Search, worker: int, n: int) -> Any:
 
 def _work(search: Search, worker: int, on_trial: Callable[[], None] | None = None) -> None:
     """Run trials until the study counts ``search.trials`` of them."""
+    from latentdrive.runlock import Turn
+
     study = open_study(search, create=False)
+    # Counting the trials and taking one (a queued retry, or a new one) is one worker's turn
+    # at a time. SQLite ignores the row lock optuna takes to claim a queued trial, so two
+    # workers could both claim one (the second then failed on the first's run folder, and
+    # the first, told its trial had failed, crashed), and two workers that both counted
+    # one trial short both started one. The turn passes on once the trial is taken.
+    turn = Turn(search.out / TURN_LOCK)
     while True:
-        trials = study.get_trials(deepcopy=False)
-        waiting = any(t.state == _state("WAITING") for t in trials)
-        if not waiting and counted_trials(trials) >= search.trials:
-            return
-        study.sampler = _sampler(search, worker, len(trials))
-        study.optimize(_objective(search), n_trials=1, catch=(LatentDriveError,), gc_after_trial=True)
+        with turn:
+            trials = study.get_trials(deepcopy=False)
+            waiting = any(t.state == _state("WAITING") for t in trials)
+            if not waiting and counted_trials(trials) >= search.trials:
+                return
+            study.sampler = _sampler(search, worker, len(trials))
+            objective = _objective(search)
+
+            def taken(trial: optuna.Trial, objective: Callable[[optuna.Trial], float] = objective) -> float:
+                turn.release()
+                return objective(trial)
+
+            study.optimize(taken, n_trials=1, catch=(LatentDriveError,), gc_after_trial=True)
         if on_trial is not None:
             on_trial()
 

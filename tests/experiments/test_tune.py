@@ -310,3 +310,75 @@ def test_a_worker_watches_its_parent(monkeypatch):
     monkeypatch.setattr(tune, "_work", lambda search, worker: calls.append(f"work {worker}"))
     tune._worker_main(None, 3)  # type: ignore[arg-type]
     assert calls == ["watch", "work 3"]
+
+
+_WORKER = """
+import json, sys, time
+from pathlib import Path
+from latentdrive.experiments import tune
+from latentdrive.experiments.tune_space import TuneSpace, base_config
+
+out, space_json, trials, worker = Path(sys.argv[1]), sys.argv[2], int(sys.argv[3]), int(sys.argv[4])
+space = TuneSpace.model_validate(json.loads(space_json))
+search = tune.Search(out=out, space=space, base=base_config(space, 200, {}), seeds=1, trials=trials, prune=False)
+
+def objective(search):
+    def run(trial):
+        with open(out / f"worker-{worker}.log", "a") as f:
+            f.write(f"{trial.number}\\n")
+        time.sleep(0.02)
+        return 0.5
+    return run
+
+tune._objective = objective
+
+# SQLite ignores the row lock optuna takes while it claims a queued trial; widen the gap
+# between reading the trial's state and writing it, as a busy machine does.
+from optuna.storages._rdb import models
+find = models.TrialModel.find_or_raise_by_id.__func__
+
+def slow_find(cls, trial_id, session, for_update=False):
+    trial = find(cls, trial_id, session, for_update)
+    if for_update:
+        time.sleep(0.2)
+    return trial
+
+models.TrialModel.find_or_raise_by_id = classmethod(slow_find)
+while not (out / "go").exists():
+    time.sleep(0.01)
+tune._work(search, worker)
+"""
+
+
+def test_two_workers_never_start_one_waiting_trial_twice(tmp_path):
+    """Regression: SQLite ignores optuna's row lock, so two workers of one machine could both
+    take the same queued trial (a retry on resumption); the second failed on the first's run
+    folder, and the first then crashed ("Cannot tell a FAIL trial"), leaving one worker. And
+    two workers that each counted one trial short both started one, past --trials."""
+    import json
+    import subprocess
+    import sys
+    import time
+
+    from latentdrive.experiments.tune import Search, open_study
+    from latentdrive.experiments.tune_space import TuneSpace, base_config
+
+    raw = {"base": TINY_BASE, "space": TINY_SPACE}
+    space = TuneSpace.model_validate(raw)
+    out, n = tmp_path / "out", 8
+    search = Search(out=out, space=space, base=base_config(space, 200, {}), seeds=1, trials=n, prune=False)
+    study = open_study(search)
+    for _ in range(n):
+        study.enqueue_trial({"dqn.double": True})
+    script = tmp_path / "worker.py"
+    script.write_text(_WORKER)
+    procs = [subprocess.Popen([sys.executable, str(script), str(out), json.dumps(raw), str(n), str(w)],
+                              stderr=subprocess.PIPE, text=True) for w in range(2)]
+    time.sleep(3)  # both import and wait
+    (out / "go").touch()
+    errs = [p.communicate(timeout=300)[1] for p in procs]
+    assert [p.returncode for p in procs] == [0, 0], errs
+    started = [int(x) for w in range(2) if (out / f"worker-{w}.log").exists()
+               for x in (out / f"worker-{w}.log").read_text().split()]
+    assert sorted(started) == list(range(n))
+    assert all(t.state.name == "COMPLETE" for t in study.get_trials())
