@@ -122,14 +122,18 @@ class Turn:
             f.close()
             if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
                 raise
+            print(f"latentdrive: {self.path}: cannot lock ({exc.strerror}); taking turns unlocked", file=sys.stderr)
             return
+        except BaseException:  # interrupted while waiting
+            f.close()
+            raise
         self._file = f
 
     def release(self) -> None:
-        if self._file is not None:
-            fcntl.flock(self._file.fileno(), fcntl.LOCK_UN)
-            self._file.close()
-            self._file = None
+        f, self._file = self._file, None
+        if f is not None:
+            fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+            f.close()
 
     def __enter__(self) -> Turn:
         self.acquire()

@@ -97,7 +97,7 @@ def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str,
     head = evals[0]
     seen: dict[str, str] = {}
     for e in evals:
-        for key in (str(Path(e.path).resolve()), f"policy {e.policy}"):
+        for key in (str(Path(e.path).resolve()), f"policy {Path(e.policy).resolve()}"):
             if key in seen:
                 raise ConfigError(f"{e.path}: the same {'policy' if key.startswith('policy ') else 'file'} as "
                                   f"{seen[key]}; give each training seed once")
@@ -173,6 +173,6 @@ def format_seeds(agg: dict[str, Any]) -> str:
     if n < 5:
         # Each resample draws from n values: with 3 seeds all three land on the lowest with
         # probability 1/27 > 2.5%, so a percentile interval is at most the seeds' range.
-        lines.append(f"note: with {n} seed(s) an interval over seeds is at most the seeds' range and covers less "
-                     "than 95%; read each seed's own test beside it")
+        lines.append(f"note: with {n} seed(s) a scenario's interval over seeds is at most the seeds' range and "
+                     "covers less than 95%; read each seed's own test beside it")
     return "\n".join(lines + out)

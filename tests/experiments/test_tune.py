@@ -332,15 +332,19 @@ def objective(search):
 
 tune._objective = objective
 
-# SQLite ignores the row lock optuna takes while it claims a queued trial; widen the gap
-# between reading the trial's state and writing it, as a busy machine does.
+# SQLite ignores the row lock optuna takes while it claims a queued trial.
 from optuna.storages._rdb import models
 find = models.TrialModel.find_or_raise_by_id.__func__
 
 def slow_find(cls, trial_id, session, for_update=False):
+    # Meet the other worker at the read of a queued trial (for a second at most): without
+    # turns both read it as queued here and both claim it.
     trial = find(cls, trial_id, session, for_update)
-    if for_update:
-        time.sleep(0.2)
+    if for_update and trial.state.name == "WAITING":
+        (out / f"read-{trial_id}-{worker}").touch()
+        end = time.monotonic() + 0.5
+        while not (out / f"read-{trial_id}-{1 - worker}").exists() and time.monotonic() < end:
+            time.sleep(0.01)
     return trial
 
 models.TrialModel.find_or_raise_by_id = classmethod(slow_find)
