@@ -151,11 +151,11 @@ def format_seeds(agg: dict[str, Any]) -> str:
     """The table ``latentdrive aggregate`` prints: failure % per scenario, per seed and mean."""
     n = len(agg["policies"])
     ev = agg["evaluation"]
-    lines = [f"{n} training seed(s): {', '.join(agg['policies'])}",
+    lines = [f"{n} training seed(s), runs 1..{n}: {', '.join(agg['policies'])}",
              f"{ev.get('episodes_per_scenario')} evaluation episodes per scenario (reset seed {ev.get('reset_seed')}); "
              "failure %, the mean over seeds with rliable's 95% stratified-bootstrap interval over seeds"]
     has_cmp = bool(agg["compare"])
-    head = ["scenario", *[f"seed {i + 1}" for i in range(n)], "mean [95% CI]"]
+    head = ["scenario", *[f"run {i + 1}" for i in range(n)], "mean [95% CI]"]
     if has_cmp:
         head += [f"B = {', '.join(agg['compare'])}", "A−B, mean [95% CI]", "p per seed (McNemar)"]
     table = [head]
