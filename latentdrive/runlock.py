@@ -29,6 +29,9 @@ except ImportError:  # pragma: no cover - not on POSIX
 
 __all__ = ["LOCK_NAME", "DirectoryInUse", "Turn", "dir_lock"]
 
+#: flock's errors where the filesystem cannot lock at all: run unlocked rather than fail.
+_UNLOCKABLE = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL)
+
 #: The lock file's name; dataset and run directories ignore it.
 LOCK_NAME = ".latentdrive.lock"
 
@@ -82,7 +85,7 @@ def dir_lock(directory: str | Path, what: str) -> Iterator[None]:
                 f"{d}: in use by {holder}; wait for it to finish or use another directory"
             ) from None
         except OSError as exc:
-            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+            if exc.errno not in _UNLOCKABLE:
                 raise
             print(f"latentdrive: {d}: cannot lock ({exc.strerror}); running unlocked", file=sys.stderr)
             yield
@@ -120,7 +123,7 @@ class Turn:
             fcntl.flock(f.fileno(), fcntl.LOCK_EX)
         except OSError as exc:
             f.close()
-            if exc.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL):
+            if exc.errno not in _UNLOCKABLE:
                 raise
             print(f"latentdrive: {self.path}: cannot lock ({exc.strerror}); taking turns unlocked", file=sys.stderr)
             return

@@ -143,7 +143,7 @@ def _num(m: MeanCI, digits: int) -> str:
     return "-" if math.isnan(m.mean) else f"{m.mean:.{digits}f}"
 
 
-def _render(header: Sequence[str], rows: Sequence[Sequence[str]], left: int) -> str:
+def render_table(header: Sequence[str], rows: Sequence[Sequence[str]], left: int) -> str:
     """Columns padded to width; the first ``left`` columns left-aligned, the rest right."""
     widths = [max(len(r[i]) for r in [header, *rows]) for i in range(len(header))]
 
@@ -175,7 +175,7 @@ def format_table(reports: Mapping[str, PolicyReport]) -> str:
                 _pct(s.success_rate, ci=False), _pct(s.agent_arrival_rate, ci=False),
                 _pct(s.traffic_crash_rate, ci=False), _num(s.mean_speed, 2), _num(s.mean_return, 2), _num(s.mean_steps, 1),
             ])
-    return _render(_TABLE_HEADER, rows, left=2)
+    return render_table(_TABLE_HEADER, rows, left=2)
 
 
 def cause_counts(outcomes: Sequence[EpisodeOutcome]) -> dict[str, dict[str, int]]:
@@ -206,7 +206,7 @@ def format_causes(outcomes: Mapping[str, Sequence[EpisodeOutcome]]) -> str:
         for policy, by in counts.items()
         for scenario, row in by.items()
     ]
-    return _render(header, rows, left=2)
+    return render_table(header, rows, left=2)
 
 
 def _episode_key(o: EpisodeOutcome) -> EpisodeKey:
@@ -293,4 +293,4 @@ def format_compare(
         for scenario, by_outcome in results.items()
         for outcome, t in by_outcome.items()
     ]
-    return _render(header, rows, left=2)
+    return render_table(header, rows, left=2)

@@ -20,6 +20,7 @@ from typing import Any
 from latentdrive.config import ConfigError
 from latentdrive.evaluate.aggregate import seed_interval
 from latentdrive.evaluate.policies import REFERENCE_POLICIES
+from latentdrive.evaluate.report import render_table
 from latentdrive.fileio import read_json
 
 __all__ = ["SeedEval", "aggregate_seeds", "format_seeds", "read_seed_eval"]
@@ -133,8 +134,8 @@ def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str,
                        p_values=[float(e.tests[name]["p_value"]) for e in evals],
                        difference={"mean": d["mean"], "lo": d["lo"], "hi": d["hi"]})
         rows[name] = row
-    return {"evaluation": head.evaluation, "policies": [e.policy for e in evals],
-            "compare": sorted({e.compare for e in evals if e.compare is not None}), "rows": rows}
+    return {"evaluation": head.evaluation, "policies": [e.policy for e in evals], "compare": sorted(compares),
+            "rows": rows}
 
 
 def _pct(x: float, sign: str = "") -> str:
@@ -158,7 +159,7 @@ def format_seeds(agg: dict[str, Any]) -> str:
     head = ["scenario", *[f"run {i + 1}" for i in range(n)], "mean [95% CI]"]
     if has_cmp:
         head += [f"B = {', '.join(agg['compare'])}", "A−B, mean [95% CI]", "p per seed (McNemar)"]
-    table = [head]
+    rows = []
     for name, row in agg["rows"].items():
         cells = [name, *[_pct(r) for r in row["rates"]], _interval(row["mean"], row["lo"], row["hi"])]
         if has_cmp:
@@ -166,13 +167,10 @@ def format_seeds(agg: dict[str, Any]) -> str:
             d = row["difference"]
             cells += [" / ".join(_pct(x) for x in b), _interval(d["mean"], d["lo"], d["hi"], "+"),
                       " ".join(f"{p:.2g}" for p in row["p_values"])]
-        table.append(cells)
-    widths = [max(len(r[i]) for r in table) for i in range(len(head))]
-    out = ["  ".join(c.ljust(w) for c, w in zip(r, widths, strict=True)).rstrip() for r in table]
-    out.insert(1, "  ".join("-" * w for w in widths))
+        rows.append(cells)
     if n < 5:
         # Each resample draws from n values: with 3 seeds all three land on the lowest with
         # probability 1/27 > 2.5%, so a percentile interval is at most the seeds' range.
         lines.append(f"note: with {n} seed(s) a scenario's interval over seeds is at most the seeds' range and "
                      "covers less than 95%; read each seed's own test beside it")
-    return "\n".join(lines + out)
+    return "\n".join([*lines, render_table(head, rows, left=1)])
