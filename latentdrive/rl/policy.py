@@ -169,14 +169,23 @@ def greedy_actions(net: QNetwork, cache: FeatureCache, inp: PolicyInput) -> NDAr
 
 
 def epsilon_greedy(net: QNetwork, cache: FeatureCache, rng: np.random.Generator,
-                   eps: Callable[[], float]) -> Policy:
+                   eps: Callable[[], float], guide: Policy | None = None, guide_share: float = 0.0) -> Policy:
     """ε-greedy over the cached features. Draws the same random numbers every step,
-    whoever is active, so the stream does not depend on the episodes' course."""
+    whoever is active, so the stream does not depend on the episodes' course.
+
+    With a ``guide`` (a reference policy), each exploratory action is the guide's with
+    probability ``guide_share``, else uniform. Q-learning is off-policy: the greedy policy's
+    values are learned from whatever behaviour filled the replay, so a guide changes which
+    states are visited, not what is learned from them. Without a guide no extra numbers are
+    drawn, so runs configured before the option keep their stream."""
 
     def policy(inp: PolicyInput) -> NDArray[np.int64]:
         greedy = greedy_actions(net, cache, inp)
         explore = rng.random(greedy.shape) < eps()
         random = rng.integers(0, N_ACTIONS, size=greedy.shape)
+        if guide is not None:
+            guided = rng.random(greedy.shape) < guide_share
+            random = np.where(guided, np.asarray(guide(inp), dtype=np.int64), random)
         return np.where(explore, random, greedy).astype(np.int64)
 
     return policy

@@ -33,6 +33,7 @@ from latentdrive.bnn.checkpoint import (
 from latentdrive.bnn.runlog import RunLog
 from latentdrive.config import ConfigError
 from latentdrive.errors import first_line
+from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.fileio import atomic_write_bytes, confined
@@ -318,7 +319,9 @@ def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]
         expert = expert_policy(learner.cfg.imitation, learner.cfg.reward)
         policy = dagger_policy(expert, lambda inp: greedy_actions(net, cache, inp), learner.rng, learner.eps, labels)
     else:
-        policy = epsilon_greedy(learner.net, cache, learner.rng, learner.eps)
+        share = learner.cfg.dqn.explore_rule
+        guide = reference_policy("rule")() if share > 0 else None
+        policy = epsilon_greedy(learner.net, cache, learner.rng, learner.eps, guide, share)
     cur: np.ndarray | None = None
     for rec in rollout(vec, policy, seed=seed):
         if cur is None:
