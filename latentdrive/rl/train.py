@@ -39,6 +39,7 @@ from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.fileio import atomic_write_bytes, confined
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
+from latentdrive.rl.augment import random_shift
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.rl.dqn import epsilon, priority_beta, soft_update, update, updates_owed
 from latentdrive.rl.imitate import (
@@ -221,6 +222,9 @@ class Learner:
             return
         beta = priority_beta(d, self.transitions, self.cfg.steps)
         batch = self.replay.sample(self.rng, d.batch_size, self.device, beta=beta)
+        if d.augment_shift:
+            batch = batch._replace(obs=random_shift(batch.obs, d.augment_shift, self.rng),
+                                   next_obs=random_shift(batch.next_obs, d.augment_shift, self.rng))
         stats = update(self.net, self.target, self.optimizer, batch, d, self.dtype)
         self.losses.append(stats.loss)
         if batch.slots is not None and d.prioritized:
