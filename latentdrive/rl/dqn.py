@@ -31,6 +31,7 @@ class DQNConfig(Config):
 
     gamma: float = Field(0.95, gt=0.0, lt=1.0, description="Discount per policy step (1 s at 1 Hz); the authors' 0.95.")
     lr: float = Field(5e-4, gt=0.0, le=1.0, description="Adam learning rate (the authors' 5e-4).")
+    adam_eps: float = Field(1e-8, gt=0.0, le=1.0, description="Adam's ε, added to the root of the squared-gradient average before dividing by it. PyTorch's 1e-8 is the default; sample-efficient DQNs on pixels (data-efficient Rainbow) use about 1.5e-4, which bounds the step of a weight whose gradients are rare and small, as they are for the many weights that read mostly empty map cells.")
     batch_size: int = Field(32, ge=1, le=4096, description="Transitions per update (the authors' 32).")
     buffer_size: int = Field(100_000, ge=100, le=5_000_000, description="Transitions kept in replay.")
     learning_starts: int = Field(2_000, ge=0, description="Agent-transitions collected before the first update.")

@@ -120,7 +120,7 @@ class Learner:
         self.cfg, self.net, self.device = cfg, net, device
         self.dtype = resolve_precision(cfg.precision, device)
         self.target = copy.deepcopy(net).requires_grad_(False)
-        self.optimizer = torch.optim.Adam(net.trainable_parameters(), lr=cfg.dqn.lr)
+        self.optimizer = torch.optim.Adam(net.trainable_parameters(), lr=cfg.dqn.lr, eps=cfg.dqn.adam_eps)
         d = cfg.dqn
         self.replay = Replay(d.buffer_size, make_store(net, cfg, n_slots), prioritized=d.prioritized,
                              alpha=d.priority_alpha, priority_eps=d.priority_eps)

@@ -240,3 +240,15 @@ def test_a_run_whose_config_predates_the_learner_options_still_loads(tmp_path, t
     _, cfg = load_policy_network(tmp_path / "run")
     assert cfg.dqn.updates_per_transition == 0.25 and cfg.dqn.n_step == 1 and not cfg.dqn.dueling
     assert cfg.precision == "auto"
+
+
+def test_the_optimizer_takes_the_configured_adam_eps(tiny):
+    import torch
+
+    from latentdrive.rl.policy import build_network
+    from latentdrive.rl.train import Learner
+
+    for eps in (1e-8, 1.5e-4):
+        cfg = tiny(mode="raw", dqn={"adam_eps": eps})
+        learner = Learner(cfg, build_network(cfg, None), torch.device("cpu"), 8)
+        assert [g["eps"] for g in learner.optimizer.param_groups] == [eps]
