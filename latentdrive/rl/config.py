@@ -36,7 +36,7 @@ class PolicyTrainConfig(Config):
     observation: ObservationConfig = Field(default_factory=ObservationConfig, description="VelocityMap settings; must match the BNN's input.")
     reward: RewardConfig = Field(default_factory=RewardConfig, description="Per-agent reward weights while training (evaluation rates do not depend on them).")
     learner: Literal["dqn", "dagger"] = Field("dqn", description="How the network learns: 'dqn', multi-agent double DQN on the reward (the paper's method); 'dagger', imitation of an expert's actions (the lookahead planner's, or the rule driver's: imitation.expert) on the states the policy visits (the imitation reference: what a policy reading this observation can reach; fast backend only). See latentdrive.rl.imitate.")
-    dqn: DQNConfig = Field(default_factory=DQNConfig, description="Q-learning hyperparameters. Under learner 'dagger' only lr, batch_size, buffer_size (the labelled decisions kept), learning_starts, updates_per_transition and grad_clip apply.")
+    dqn: DQNConfig = Field(default_factory=DQNConfig, description="Q-learning hyperparameters. Under learner 'dagger' only lr, adam_eps, batch_size, buffer_size (the labelled decisions kept), learning_starts, updates_per_transition and grad_clip apply.")
     imitation: ImitationConfig = Field(default_factory=ImitationConfig, description="DAgger settings (learner 'dagger' only).")
     vfan: VFANConfig = Field(default_factory=VFANConfig, description="VFAN body architecture.")
     segment: int = Field(10_000, ge=1, description="Agent-transitions between checkpoints. Every environment is reset at a segment boundary, from a seed fixed by (seed, segment index), so a resumed run continues exactly as an uninterrupted one.")
@@ -91,6 +91,9 @@ class PolicyTrainConfig(Config):
         if self.learner == "dagger" and (self.dqn.n_step > 1 or self.dqn.prioritized):
             raise ValueError("learner 'dagger' fits labels, not returns: dqn.n_step must be 1 and dqn.prioritized "
                              "false")
+        if self.learner == "dagger" and (self.dqn.explore_rule > 0 or self.dqn.augment_shift > 0):
+            raise ValueError("learner 'dagger' neither explores nor augments: dqn.explore_rule and "
+                             "dqn.augment_shift must be 0")
         return self
 
 
