@@ -153,9 +153,9 @@ def test_dagger_refuses_settings_it_would_ignore():
     for dqn in ({"n_step": 3}, {"prioritized": True}):
         with pytest.raises(ConfigError, match=r"dqn\.n_step must be 1 and dqn\.prioritized false"):
             validate(PolicyTrainConfig, {"mode": "raw", "learner": "dagger", "dqn": dqn})
-    for dqn in ({"explore_rule": 0.5}, {"augment_shift": 2}):
+    for ignored in ({"explore_rule": 0.5}, {"augment_shift": 2}):
         with pytest.raises(ConfigError, match=r"dqn\.explore_rule and dqn\.augment_shift must be 0"):
-            validate(PolicyTrainConfig, {"mode": "raw", "learner": "dagger", "dqn": dqn})
+            validate(PolicyTrainConfig, {"mode": "raw", "learner": "dagger", "dqn": ignored})
 
 
 def test_a_dagger_run_is_deterministic_and_resumes_bit_for_bit(tmp_path, tiny):
