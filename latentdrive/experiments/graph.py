@@ -42,6 +42,9 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("reward", "failure"): 0.0,
     ("observation", "route"): 0.0,
     ("study", "score_samples"): 0,
+    ("dqn", "adam_eps"): 1e-8,
+    ("dqn", "augment_shift"): 0,
+    ("dqn", "explore_rule"): 0.0,
 }
 
 
