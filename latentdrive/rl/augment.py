@@ -22,7 +22,8 @@ def random_shift(maps: torch.Tensor, pad: int, rng: np.random.Generator) -> torc
 
     The map is padded by ``pad`` cells on every side with copies of its edge cells, then an
     ``H × W`` window is cut at offsets drawn uniformly from ``[0, 2·pad]`` per map (one
-    offset pair for all its channels and frames): a shift of ``offset − pad`` cells.
+    offset pair for all its channels and frames): the window moves by ``offset − pad``
+    cells, so the map's contents move by ``pad − offset``.
 
     Args:
         maps: ``(B, C, T, H, W)`` stacked maps (any float dtype, any device).

@@ -86,8 +86,6 @@ class PolicyTrainConfig(Config):
         if self.dqn.augment_shift > 0 and self.mode not in ("raw", "end-to-end"):
             raise ValueError(f"dqn.augment_shift shifts maps: mode {self.mode!r} learns from stored latents "
                              "(use it with mode 'raw' or 'end-to-end')")
-        if self.dqn.explore_rule > 0 and self.backend != "fast":
-            raise ValueError("dqn.explore_rule needs backend 'fast': the rule driver reads the fast backend's specs")
         if self.learner == "dagger" and (self.dqn.n_step > 1 or self.dqn.prioritized):
             raise ValueError("learner 'dagger' fits labels, not returns: dqn.n_step must be 1 and dqn.prioritized "
                              "false")

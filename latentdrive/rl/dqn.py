@@ -51,7 +51,7 @@ class DQNConfig(Config):
     eps_end: float = Field(0.05, ge=0.0, le=1.0, description="ε after the decay.")
     eps_fraction: float = Field(0.3, gt=0.0, le=1.0, description="Share of the transition budget over which ε decays linearly.")
     augment_shift: int = Field(0, ge=0, le=8, description="Random-shift augmentation (DrQ): every sampled map and next map is moved by up to this many cells along each axis (edge cells repeated), independently per sample, before the update. Modes that read the map only (raw, end-to-end); 0, the default, is off.")
-    explore_rule: float = Field(0.0, ge=0.0, le=1.0, description="Share of the exploratory actions (those ε-greedy plays instead of the greedy one) that the rule driver of evaluate --policy rule chooses instead of a uniform random action. Exploration guided toward the states a car follower reaches; Q-learning, off-policy, still learns the greedy policy's values. 0, the default, is plain ε-greedy.")
+    explore_rule: float = Field(0.0, ge=0.0, le=1.0, description="Share of the exploratory actions (those ε-greedy plays instead of the greedy one) that the rule driver of evaluate --policy rule chooses instead of a uniform random action. Exploration guided toward the states a car follower reaches; one-step Q-learning, off-policy, still learns the greedy policy's values, while n-step returns (no off-policy correction) also follow the guide's later actions. 0, the default, is plain ε-greedy.")
 
     @model_validator(mode="before")
     @classmethod

@@ -174,10 +174,12 @@ def epsilon_greedy(net: QNetwork, cache: FeatureCache, rng: np.random.Generator,
     whoever is active, so the stream does not depend on the episodes' course.
 
     With a ``guide`` (a reference policy), each exploratory action is the guide's with
-    probability ``guide_share``, else uniform. Q-learning is off-policy: the greedy policy's
-    values are learned from whatever behaviour filled the replay, so a guide changes which
-    states are visited, not what is learned from them. Without a guide no extra numbers are
-    drawn, so runs configured before the option keep their stream."""
+    probability ``guide_share``, else uniform. One-step Q-learning is off-policy: the greedy
+    policy's values are learned from whatever behaviour filled the replay, so a guide
+    changes which states are visited. n-step returns (``n_step`` > 1) carry no off-policy
+    correction: their rewards follow the behaviour's later actions, the guide's among them.
+    Without a guide no extra numbers are drawn, so runs configured before the option keep
+    their stream."""
 
     def policy(inp: PolicyInput) -> NDArray[np.int64]:
         greedy = greedy_actions(net, cache, inp)

@@ -75,11 +75,6 @@ def test_a_run_exploring_with_the_rule_driver_alone_stores_its_actions(tmp_path,
     assert len(set(stored.tolist())) > 1
 
 
-def test_guided_exploration_needs_the_fast_backend():
-    with pytest.raises(ConfigError, match="explore_rule needs backend 'fast'"):
-        validate(PolicyTrainConfig, {"mode": "raw", "backend": "highway", "dqn": {"explore_rule": 0.5}})
-
-
 def test_an_out_of_range_share_is_refused():
     with pytest.raises(ConfigError, match="explore_rule"):
         validate(PolicyTrainConfig, {"mode": "raw", "dqn": {"explore_rule": 1.5}})

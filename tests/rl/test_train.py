@@ -145,7 +145,8 @@ class _Stop(Exception):
 
 
 #: Every learner option away from its default at once.
-LEARNER_OPTIONS = {"n_step": 3, "prioritized": True, "dueling": True, "tau": 0.05, "updates_per_transition": 1}
+LEARNER_OPTIONS = {"n_step": 3, "prioritized": True, "dueling": True, "tau": 0.05, "updates_per_transition": 1,
+                   "augment_shift": 1, "explore_rule": 0.5, "adam_eps": 1.5e-4}
 
 
 @pytest.mark.parametrize("options", [{}, LEARNER_OPTIONS], ids=["defaults", "options"])
