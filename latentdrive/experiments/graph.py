@@ -45,6 +45,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("dqn", "adam_eps"): 1e-8,
     ("dqn", "augment_shift"): 0,
     ("dqn", "explore_rule"): 0.0,
+    ("keep",): "last",
 }
 
 

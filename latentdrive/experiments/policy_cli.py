@@ -58,6 +58,10 @@ def _cmd_train_policy(args: argparse.Namespace) -> int:
     if mixed:
         line += (f"; held-out failure rate {mixed['failure_rate']['rate']:.3f}, crash rate "
                  f"{mixed['crash_rate']['rate']:.3f} over {mixed['episodes']} episodes")
+    kept = result.get("kept")
+    if kept:
+        line += (f"; kept the weights of {kept['transitions']} agent-transitions (held-out failure rate "
+                 f"{kept['failure_rate']:.3f})")
     print(line)
     return 0
 

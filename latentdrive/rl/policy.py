@@ -247,7 +247,8 @@ def changed_scenarios(run_config: dict[str, Any]) -> list[str]:
 
 
 def load_policy_network(run_dir: str | Path, device: torch.device | str = "cpu") -> tuple[QNetwork, PolicyTrainConfig]:
-    """The trained network of a policy run (eval mode) and the run's config."""
+    """The trained network of a policy run (eval mode) and the run's config: its last
+    weights, or with ``keep: best`` those that failed least at a periodic evaluation."""
     data = read_run_config(run_dir)
     cfg = validate(PolicyTrainConfig, data["train"])
     ckpt = Path(run_dir) / CHECKPOINT
@@ -255,5 +256,14 @@ def load_policy_network(run_dir: str | Path, device: torch.device | str = "cpu")
         raise CheckpointError(f"{run_dir}: no checkpoint yet ({CHECKPOINT} is missing); train it first")
     enc = validate(BottleneckConfig, data["encoder"]) if data.get("encoder") else None
     net = build_network(cfg, enc, load_bnn_weights=False)
-    load_checkpoint(ckpt, net)
+    info = load_checkpoint(ckpt, net)
+    if cfg.keep == "best":
+        best = {k.removeprefix("best/"): v for k, v in info.extra_tensors.items() if k.startswith("best/")}
+        if not best:
+            raise CheckpointError(f"{ckpt}: no evaluated weights yet (the run keeps its best evaluated weights, "
+                                  "and none has been evaluated)")
+        try:
+            net.load_state_dict(best, strict=True)
+        except RuntimeError:
+            raise CheckpointError(f"{ckpt}: its best weights do not match the model") from None
     return net.to(device).eval(), cfg

@@ -134,6 +134,10 @@ class Learner:
         self.cache = FeatureCache(net, device, self.dtype)
         self._weights = torch.ones(0)  # DAgger's class weights, as of replay.added == _weights_at
         self._weights_at = -1
+        # keep 'best': the weights that failed least at a periodic evaluation so far.
+        self.best: dict[str, torch.Tensor] | None = None
+        self.best_failure = float("inf")
+        self.best_transitions = -1
 
     @property
     def imitating(self) -> bool:
@@ -244,6 +248,16 @@ class Learner:
             self._weights_at = self.replay.added
         return self._weights
 
+    def consider_best(self, failure: float) -> bool:
+        """Keep the current weights as the run's best if they failed (mixed failure rate in
+        [0, 1] at a periodic evaluation) no more often than the best so far; ties go to the
+        later weights, trained on more data. Returns whether they were kept."""
+        if failure > self.best_failure:
+            return False
+        self.best = {k: v.detach().cpu().clone() for k, v in self.net.state_dict().items()}
+        self.best_failure, self.best_transitions = failure, self.transitions
+        return True
+
     # ---- checkpoints ---------------------------------------------------------------
 
     def save(self, run_dir: Path, segment: int) -> None:
@@ -253,14 +267,18 @@ class Learner:
         # The checkpoint keeps the replay's digest: a damaged replay is refused on
         # resumption rather than silently training on other transitions.
         name = f"replay-{segment}.safetensors"
+        # The best weights travel in the checkpoint itself, so they and the counters that
+        # chose them are written together.
+        best = {} if self.best is None else {f"best/{k}": v for k, v in self.best.items()}
+        kept = {} if self.best is None else {"best_failure": self.best_failure, "best_transitions": self.best_transitions}
         atomic_write_bytes(run_dir / name, np_save(arrays, metadata={"replay_added": str(self.replay.added)}))
         save_checkpoint(
             run_dir / CHECKPOINT, self.net, self.optimizer, step=self.updates, epoch=segment,
             config=self.cfg.model_dump(mode="json"), numpy_generator=self.rng,
             extra={"transitions": self.transitions, "updates": self.updates, "episodes": self.episodes,
                    "segment": segment, "replay_added": self.replay.added, "replay": name,
-                   "replay_digest": tensors_digest({k: torch.from_numpy(v) for k, v in arrays.items()})},
-            extra_tensors={f"target/{k}": v for k, v in self.target.state_dict().items()},
+                   "replay_digest": tensors_digest({k: torch.from_numpy(v) for k, v in arrays.items()}), **kept},
+            extra_tensors={**{f"target/{k}": v for k, v in self.target.state_dict().items()}, **best},
         )
         for old in run_dir.iterdir():
             if REPLAY_PATTERN.fullmatch(old.name) and old.name != name:
@@ -284,6 +302,11 @@ class Learner:
             self.episodes = int(info.extra["episodes"])
             segment = int(info.extra["segment"])
             replay_added = int(info.extra.get("replay_added", -1))
+            best = {k.removeprefix("best/"): v for k, v in info.extra_tensors.items() if k.startswith("best/")}
+            if best:
+                self.best = best
+                self.best_failure = float(info.extra["best_failure"])
+                self.best_transitions = int(info.extra["best_transitions"])
         except (KeyError, TypeError, ValueError):
             raise CheckpointError(f"{run_dir / CHECKPOINT}: not a policy run's checkpoint (no training counters)") from None
         if self.transitions >= self.cfg.steps:
@@ -461,6 +484,8 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
                                   "success_rate": summary["success_rate"]["rate"],
                                   "mean_return": summary["mean_return"]["mean"]}, f"eval/{name}")
             mixed = last_eval["mixed"]
+            if cfg.keep == "best":
+                learner.consider_best(float(mixed["failure_rate"]["rate"]))
             bar.set_postfix(fail=f"{mixed['failure_rate']['rate']:.2f}", crash=f"{mixed['crash_rate']['rate']:.2f}")
         learner.save(root, segment)
         segment += 1
@@ -468,5 +493,7 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
             # After the checkpoint: whatever the callback raises, the run resumes from here.
             on_eval(learner.transitions, float(last_eval["mixed"]["failure_rate"]["rate"]))
     bar.close()
+    kept = ({"kept": {"transitions": learner.best_transitions, "failure_rate": learner.best_failure}}
+            if learner.best is not None else {})
     return TrainResult(transitions=learner.transitions, updates=learner.updates, episodes=learner.episodes,
-                       evaluation=last_eval, parameters=net.parameter_count())
+                       evaluation=last_eval, parameters=net.parameter_count(), **kept)

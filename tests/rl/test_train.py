@@ -253,3 +253,88 @@ def test_the_optimizer_takes_the_configured_adam_eps(tiny):
         cfg = tiny(mode="raw", dqn={"adam_eps": eps})
         learner = Learner(cfg, build_network(cfg, None), torch.device("cpu"), 8)
         assert [g["eps"] for g in learner.optimizer.param_groups] == [eps]
+
+
+def _scripted_evaluations(rates, seen):
+    """A stand-in for the periodic evaluation: reports ``rates`` in turn (mixed failure rate)
+    and records the weights each one scored."""
+    def evaluate(cfg, net, device):
+        seen.append({k: v.detach().clone() for k, v in net.state_dict().items()})
+        rate = rates[len(seen) - 1]
+        summary = {"episodes": 4, "failure_rate": {"rate": rate}, "crash_rate": {"rate": rate},
+                   "success_rate": {"rate": 1 - rate}, "mean_return": {"mean": 0.0}}
+        return {"scenarios": {}, "mixed": summary}
+
+    return evaluate
+
+
+def _same(a, b):
+    return a.keys() == b.keys() and all(np.array_equal(a[k].numpy(), b[k].numpy()) for k in a)
+
+
+@pytest.mark.parametrize("keep", ["best", "last"])
+def test_keep_best_makes_the_least_failing_evaluated_weights_the_runs_policy(tmp_path, tiny, monkeypatch, keep):
+    import latentdrive.rl.train as train_module
+
+    seen: list[dict] = []
+    # Ties go to the later weights: the second and fourth evaluation tie, the fourth is kept.
+    monkeypatch.setattr(train_module, "_evaluate", _scripted_evaluations([0.5, 0.25, 0.75, 0.25, 0.5], seen))
+    cfg = tiny(mode="raw", steps=500, eval_every=1, keep=keep)
+    result = train_policy(cfg, tmp_path / "run", **_quiet())
+    assert len(seen) == 5
+    net, _ = load_policy_network(tmp_path / "run")
+    if keep == "best":
+        assert _same(net.state_dict(), seen[3]) and not _same(seen[3], seen[4])
+        assert result["kept"]["failure_rate"] == 0.25 and 400 <= result["kept"]["transitions"] < 500
+    else:
+        assert _same(net.state_dict(), seen[4]) and "kept" not in result
+        assert not any(k.startswith("best/") for k in load_file(str(tmp_path / "run" / CHECKPOINT)))
+
+
+def test_a_resumed_run_keeps_the_best_weights_chosen_before_it_was_stopped(tmp_path, tiny, monkeypatch):
+    import latentdrive.rl.train as train_module
+    from latentdrive.rl.train import Learner
+
+    rates = [0.25, 0.5, 0.75, 0.5]  # the best comes before the interruption, and stays best
+    cfg = tiny(mode="raw", steps=400, eval_every=1, keep="best")
+    whole: list[dict] = []
+    monkeypatch.setattr(train_module, "_evaluate", _scripted_evaluations(rates, whole))
+    train_policy(cfg, tmp_path / "whole", **_quiet())
+    save, saves = Learner.save, []
+
+    def save_then_stop(self, run_dir, segment):
+        save(self, run_dir, segment)
+        saves.append(segment)
+        if len(saves) == 2:
+            raise _Stop  # as if killed after the second checkpoint
+
+    before: list[dict] = []
+    monkeypatch.setattr(train_module, "_evaluate", _scripted_evaluations(rates, before))
+    with monkeypatch.context() as m:
+        m.setattr(Learner, "save", save_then_stop)
+        with pytest.raises(_Stop):
+            train_policy(cfg, tmp_path / "r", **_quiet())
+    after: list[dict] = []
+    monkeypatch.setattr(train_module, "_evaluate", _scripted_evaluations(rates[2:], after))
+    result = train_policy(cfg, tmp_path / "r", resume=True, **_quiet())
+    assert len(before) == len(after) == 2
+    net, _ = load_policy_network(tmp_path / "r")
+    assert _same(net.state_dict(), whole[0]) and _same(whole[0], before[0])
+    assert result["kept"]["failure_rate"] == 0.25
+
+
+def test_a_run_that_keeps_its_best_weights_refuses_to_load_before_any_evaluation(tmp_path, tiny, monkeypatch):
+    from latentdrive.bnn.checkpoint import CheckpointError
+    from latentdrive.rl.train import Learner
+
+    save = Learner.save
+
+    def save_then_stop(self, run_dir, segment):
+        save(self, run_dir, segment)
+        raise _Stop  # killed after the first checkpoint, which no evaluation preceded
+
+    monkeypatch.setattr(Learner, "save", save_then_stop)
+    with pytest.raises(_Stop):
+        train_policy(tiny(mode="raw", steps=300, eval_every=2, keep="best"), tmp_path / "r", **_quiet())
+    with pytest.raises(CheckpointError, match="no evaluated weights yet"):
+        load_policy_network(tmp_path / "r")
