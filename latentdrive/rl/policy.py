@@ -187,7 +187,10 @@ def epsilon_greedy(net: QNetwork, cache: FeatureCache, rng: np.random.Generator,
         random = rng.integers(0, N_ACTIONS, size=greedy.shape)
         if guide is not None:
             guided = rng.random(greedy.shape) < guide_share
-            random = np.where(guided, np.asarray(guide(inp), dtype=np.int64), random)
+            # The guide is asked only on steps where some agent takes its action: late in
+            # training few do, and the rule driver reads every scene.
+            if (explore & guided).any():
+                random = np.where(guided, np.asarray(guide(inp), dtype=np.int64), random)
         return np.where(explore, random, greedy).astype(np.int64)
 
     return policy

@@ -39,6 +39,22 @@ def test_exploration_plays_the_guide_only_when_it_explores(acting, eps, share, e
     np.testing.assert_array_equal(policy(inp), GUIDE if expect == "guide" else greedy)
 
 
+def test_the_guide_is_not_asked_on_a_step_where_no_agent_explores(acting):
+    net, cache, inp, greedy = acting
+    calls = []
+
+    def guide(_inp):
+        calls.append(1)
+        return GUIDE
+
+    eps = iter([0.0, 1.0, 0.0])
+    policy = epsilon_greedy(net, cache, np.random.default_rng(0), lambda: next(eps), guide, 1.0)
+    np.testing.assert_array_equal(policy(inp), greedy)
+    np.testing.assert_array_equal(policy(inp), GUIDE)
+    np.testing.assert_array_equal(policy(inp), greedy)
+    assert len(calls) == 1
+
+
 def test_a_half_share_guides_about_half_the_exploratory_actions(acting):
     net, cache, inp, _ = acting
     # A guide that plays an action uniform exploration plays a fifth of the time.
