@@ -122,3 +122,17 @@ def test_a_terminate_stops_the_command_like_an_interrupt(monkeypatch, capsys):
     assert time.monotonic() - t0 < 10
     assert capsys.readouterr().err.strip() == "latentdrive: terminated"
     assert signal.getsignal(signal.SIGTERM) is before
+
+
+def test_no_help_text_shows_an_escaped_percent_sign():
+    """Regression: argparse %-formats argument help but not descriptions, so a description's
+    ``%%`` was printed as is."""
+    import argparse
+
+    from latentdrive.cli import build_parser
+
+    parser = build_parser()
+    subs = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    assert len(subs.choices) > 10
+    for name, sub in subs.choices.items():
+        assert "%%" not in sub.format_help(), name

@@ -321,7 +321,7 @@ def add_policy_parsers(sub: Any) -> None:
     s = sub.add_parser("aggregate", help="one setting's training seeds: mean failure rates with intervals over seeds",
                        description="Read one `evaluate --json` result per training seed of one setting (each "
                        "scored on the same episodes) and print, per scenario and mixed, each seed's failure "
-                       "rate, their mean with rliable's 95%% stratified-bootstrap interval over seeds and, "
+                       "rate, their mean with rliable's 95% stratified-bootstrap interval over seeds and, "
                        "where the files hold a --compare, each seed's paired difference and McNemar p.")
     s.add_argument("files", nargs="+", metavar="EVAL_JSON", help="`latentdrive evaluate ... --json FILE` results, one per seed")
     s.add_argument("--json", default="", help="also write the aggregate to this JSON file")
