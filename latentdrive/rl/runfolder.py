@@ -12,12 +12,14 @@ from typing import Any
 
 import torch
 
+from latentdrive.bnn.checkpoint import read_checkpoint
 from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.fileio import atomic_write_text, read_log
 from latentdrive.models.bottleneck import BottleneckConfig
 from latentdrive.models.vfan import QNetwork
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.policy import (
+    CHECKPOINT,
     CONFIG,
     build_network,
     changed_scenarios,
@@ -66,7 +68,10 @@ def check_resume(run_dir: Path, cfg: PolicyTrainConfig) -> None:
         raise ConfigError(f"{run_dir}: --resume with a different config ({', '.join(changed)} changed)")
     if cfg.mode == "latent" and saved.get("bnn") != now["bnn"]:
         mine = build_network(cfg, encoder_config(cfg), load_bnn_weights=True).state_dict()
-        if not same_encoder(mine, load_policy_network(run_dir)[0].state_dict()):
+        # The last weights, not the policy's: a keep=best run may not have been evaluated
+        # yet, and the frozen encoder is the same in both.
+        tensors, _ = read_checkpoint(run_dir / CHECKPOINT)
+        if not same_encoder(mine, {k.removeprefix("model/"): v for k, v in tensors.items() if k.startswith("model/")}):
             raise ConfigError(f"{run_dir}: --resume with another BNN ({cfg.bnn} holds other weights than the "
                               f"run's {saved.get('bnn')})")
 

@@ -305,6 +305,36 @@ def test_latent_init_from_checks_the_bnn_by_its_weights_not_its_path(tmp_path, c
                     "--mode", "latent", "--steps", "120", *TINY_SETS, "-q"], "another BNN", tmp_path)
 
 
+def test_a_moved_keep_best_latent_run_resumes_before_its_first_evaluation(tmp_path, monkeypatch):
+    # Regression: resuming with another BNN path compared encoders through the policy's
+    # weights, which a keep=best run has none of before its first evaluation.
+    import shutil
+
+    import torch
+
+    from latentdrive.rl.train import Learner
+
+    torch.manual_seed(0)
+    bnn = _bnn_run(tmp_path / "bnn", (2, 16, 32))
+    args = ["--mode", "latent", "--steps", "250", *TINY_SETS, "--set", "eval_every=2", "--set", "keep=best", "-q"]
+    save = Learner.save
+
+    class Stop(Exception):
+        pass
+
+    def save_then_stop(self, run_dir, segment):
+        save(self, run_dir, segment)
+        raise Stop  # killed after the first checkpoint, before any evaluation
+
+    with monkeypatch.context() as m:
+        m.setattr(Learner, "save", save_then_stop)
+        with pytest.raises(Stop):
+            main(["train-policy", str(tmp_path / "run"), "--bnn", str(bnn), *args])
+    moved = tmp_path / "moved-bnn"
+    shutil.copytree(bnn, moved)
+    assert main(["train-policy", str(tmp_path / "run"), "--bnn", str(moved), "--resume", *args]) == 0
+
+
 def test_dagger_on_highway_env_is_one_line(tmp_path, capsys):
     _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "raw", "--learner", "dagger", "--backend", "highway",
                     *TINY_SETS], "learner 'dagger' needs backend 'fast'", tmp_path)
