@@ -50,6 +50,7 @@ __all__ = [
     "load_checkpoint",
     "read_checkpoint",
     "save_checkpoint",
+    "section",
     "tensors_digest",
 ]
 
@@ -203,6 +204,12 @@ def save_checkpoint(
 
 # ---------------------------------------------------------------------------------------
 # Load
+
+
+def section(tensors: Mapping[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:
+    """The tensors stored under ``prefix`` (e.g. ``"model/"``, or a caller's ``"target/"`` in
+    :attr:`CheckpointInfo.extra_tensors`), keyed without it."""
+    return {k.removeprefix(prefix): v for k, v in tensors.items() if k.startswith(prefix)}
 
 
 def read_checkpoint(path: str | Path) -> tuple[dict[str, torch.Tensor], dict[str, Any]]:

@@ -18,7 +18,7 @@ import torch
 from numpy.typing import NDArray
 
 from latentdrive.actions import N_ACTIONS
-from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint
+from latentdrive.bnn.checkpoint import CheckpointError, load_checkpoint, read_checkpoint, section
 from latentdrive.bnn.resume import changed_fields
 from latentdrive.bnn.train import load_trained_bottleneck
 from latentdrive.config import ConfigError, config_hash, validate
@@ -261,7 +261,7 @@ def load_policy_network(run_dir: str | Path, device: torch.device | str = "cpu")
     net = build_network(cfg, enc, load_bnn_weights=False)
     info = load_checkpoint(ckpt, net)
     if cfg.keep == "best":
-        best = {k.removeprefix("best/"): v for k, v in info.extra_tensors.items() if k.startswith("best/")}
+        best = section(info.extra_tensors, "best/")
         if not best:
             raise CheckpointError(f"{ckpt}: no evaluated weights yet (the run keeps its best evaluated weights, "
                                   "and none has been evaluated)")

@@ -12,7 +12,7 @@ from typing import Any
 
 import torch
 
-from latentdrive.bnn.checkpoint import read_checkpoint
+from latentdrive.bnn.checkpoint import read_checkpoint, section
 from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.fileio import atomic_write_text, read_log
 from latentdrive.models.bottleneck import BottleneckConfig
@@ -71,7 +71,7 @@ def check_resume(run_dir: Path, cfg: PolicyTrainConfig) -> None:
         # The last weights, not the policy's: a keep=best run may not have been evaluated
         # yet, and the frozen encoder is the same in both.
         tensors, _ = read_checkpoint(run_dir / CHECKPOINT)
-        if not same_encoder(mine, {k.removeprefix("model/"): v for k, v in tensors.items() if k.startswith("model/")}):
+        if not same_encoder(mine, section(tensors, "model/")):
             raise ConfigError(f"{run_dir}: --resume with another BNN ({cfg.bnn} holds other weights than the "
                               f"run's {saved.get('bnn')})")
 

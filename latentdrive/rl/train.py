@@ -28,6 +28,7 @@ from latentdrive.bnn.checkpoint import (
     CheckpointError,
     load_checkpoint,
     save_checkpoint,
+    section,
     tensors_digest,
 )
 from latentdrive.bnn.runlog import RunLog
@@ -248,15 +249,13 @@ class Learner:
             self._weights_at = self.replay.added
         return self._weights
 
-    def consider_best(self, failure: float) -> bool:
+    def consider_best(self, failure: float) -> None:
         """Keep the current weights as the run's best if they failed (mixed failure rate in
         [0, 1] at a periodic evaluation) no more often than the best so far; ties go to the
-        later weights, trained on more data. Returns whether they were kept."""
-        if failure > self.best_failure:
-            return False
-        self.best = {k: v.detach().cpu().clone() for k, v in self.net.state_dict().items()}
-        self.best_failure, self.best_transitions = failure, self.transitions
-        return True
+        later weights, trained on more data."""
+        if failure <= self.best_failure:
+            self.best = {k: v.detach().cpu().clone() for k, v in self.net.state_dict().items()}
+            self.best_failure, self.best_transitions = failure, self.transitions
 
     # ---- checkpoints ---------------------------------------------------------------
 
@@ -291,7 +290,7 @@ class Learner:
         resumes to nothing and needs none.
         """
         info = load_checkpoint(run_dir / CHECKPOINT, self.net, self.optimizer, numpy_generator=self.rng)
-        target_sd = {k.removeprefix("target/"): v for k, v in info.extra_tensors.items() if k.startswith("target/")}
+        target_sd = section(info.extra_tensors, "target/")
         try:
             self.target.load_state_dict(target_sd, strict=True)
         except RuntimeError:
@@ -302,7 +301,7 @@ class Learner:
             self.episodes = int(info.extra["episodes"])
             segment = int(info.extra["segment"])
             replay_added = int(info.extra.get("replay_added", -1))
-            best = {k.removeprefix("best/"): v for k, v in info.extra_tensors.items() if k.startswith("best/")}
+            best = section(info.extra_tensors, "best/")
             if best:
                 self.best = best
                 self.best_failure = float(info.extra["best_failure"])
