@@ -4,22 +4,26 @@ determinism for a run.
 One ``precision`` setting (``auto|fp32|bf16``) serves every network (the BNN, the frozen
 encoder, the VFAN learner): :func:`resolve_precision` turns it into a dtype for a device,
 and :func:`autocast` runs a block in it. ``auto`` picks bf16 autocast on CUDA and on CPUs
-with bf16 matrix units (AMX-BF16 or AVX512-BF16), where it is faster, and fp32 elsewhere,
-where bf16 is emulated and slower.
+with AMX-BF16 matrix units, where it is faster, and fp32 elsewhere: where bf16 is emulated
+it is slower, and on CPUs with AVX512-BF16 but no AMX it gains little (1.2× on the BNN's
+train step) and oneDNN's kernels there return non-finite weight gradients for strided 3D
+convolutions (:func:`cpu_bf16_gradients_sound`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
+import warnings
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
 from typing import Literal
 
 import torch
 
-__all__ = ["PRECISIONS", "Precision", "autocast", "check_device", "cpu_has_bf16", "resolve_device",
-           "resolve_precision", "torch_settings", "usable_cpus"]
+__all__ = ["PRECISIONS", "Precision", "autocast", "check_device", "cpu_bf16_gradients_sound", "cpu_has_bf16",
+           "resolve_device", "resolve_precision", "torch_settings", "usable_cpus"]
 
 Precision = Literal["auto", "fp32", "bf16"]
 #: The values of every config's ``precision`` field.
@@ -42,19 +46,48 @@ def resolve_device(spec: str) -> torch.device:
 
 
 def cpu_has_bf16() -> bool:
-    """Whether this CPU has bf16 matrix instructions (AMX-BF16 or AVX512-BF16)."""
+    """Whether this CPU has AMX-BF16 matrix units, where bf16 autocast pays (1.5–2.5× here)."""
     get = getattr(torch.cpu, "get_capabilities", None)
     if get is None:  # older torch: no way to tell, so never guess bf16
         return False
-    caps = get()
-    return bool(caps.get("amx_bf16") or caps.get("avx512_bf16"))
+    return bool(get().get("amx_bf16"))
+
+
+@functools.cache
+def cpu_bf16_gradients_sound() -> bool:
+    """Whether bf16 autocast on this CPU, through oneDNN, gives the weight gradient of a
+    strided 3D convolution that fp32 gives (to bf16's precision).
+
+    torch 2.13's oneDNN kernels for AVX512-BF16 without AMX (``jit_bf16:avx512_core_bf16``)
+    return inf for the BNN encoder's last stage (48 × 16 channels, 2 × 4 × 8 input,
+    3 × 3 × 3 kernel, stride 1 × 2 × 2): a BNN trained in bf16 there reads NaN from its
+    second step. The probe runs that convolution once (a few ms, cached) on its own
+    generator, leaving torch's global one untouched.
+    """
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(48, 16, 2, 4, 8, generator=g)
+    weight = (torch.rand(16, 16, 3, 3, 3, generator=g) - 0.5) * 0.1
+
+    def grad(dtype: torch.dtype) -> torch.Tensor:
+        w = weight.clone().requires_grad_(True)
+        with autocast(dtype, torch.device("cpu")):
+            y = torch.nn.functional.conv3d(x, w, stride=(1, 2, 2), padding=1)
+        y.float().sum().backward()
+        assert w.grad is not None
+        return w.grad
+
+    with torch.backends.mkldnn.flags(enabled=True):
+        low = grad(torch.bfloat16)
+    ref = grad(torch.float32)
+    return bool(torch.isfinite(low).all() and torch.allclose(low, ref, rtol=0.05, atol=0.05 * float(ref.abs().max())))
 
 
 def resolve_precision(spec: str, device: torch.device) -> torch.dtype:
     """The compute dtype of ``spec`` on ``device``: ``torch.float32`` or ``torch.bfloat16``.
 
-    ``auto`` → bf16 on CUDA and on CPUs with bf16 matrix units (:func:`cpu_has_bf16`),
-    fp32 elsewhere. ``fp32`` and ``bf16`` are taken as they are.
+    ``auto`` → bf16 on CUDA and on CPUs with AMX-BF16 (:func:`cpu_has_bf16`) whose kernels
+    pass :func:`cpu_bf16_gradients_sound`, fp32 elsewhere. ``fp32`` and ``bf16`` are taken
+    as they are (:func:`torch_settings` makes an explicit bf16 sound where the kernels are not).
     """
     if spec not in PRECISIONS:
         raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {spec!r}")
@@ -62,7 +95,7 @@ def resolve_precision(spec: str, device: torch.device) -> torch.dtype:
         return torch.float32
     if spec == "bf16":
         return torch.bfloat16
-    if device.type == "cuda" or (device.type == "cpu" and cpu_has_bf16()):
+    if device.type == "cuda" or (device.type == "cpu" and cpu_has_bf16() and cpu_bf16_gradients_sound()):
         return torch.bfloat16
     return torch.float32
 
@@ -78,14 +111,27 @@ def autocast(dtype: torch.dtype, device: torch.device) -> AbstractContextManager
 
 
 @contextlib.contextmanager
-def torch_settings(enabled: bool, device: torch.device, num_threads: int) -> Iterator[None]:
-    """Set deterministic algorithms and the thread count for a run; restore the process's after."""
+def torch_settings(enabled: bool, device: torch.device, num_threads: int,
+                   dtype: torch.dtype = torch.float32) -> Iterator[None]:
+    """Set deterministic algorithms and the thread count for a run; restore the process's after.
+
+    A bf16 run on a CPU whose oneDNN bf16 gradients are unsound
+    (:func:`cpu_bf16_gradients_sound`) runs without oneDNN: correct, but about ten times
+    slower than fp32, so it warns; ``auto`` never chooses it.
+    """
     prev = torch.are_deterministic_algorithms_enabled()
     prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
     prev_bench = torch.backends.cudnn.benchmark
     prev_threads = torch.get_num_threads()
     if num_threads > 0:
         torch.set_num_threads(num_threads)
+    if dtype == torch.bfloat16 and device.type == "cpu" and not cpu_bf16_gradients_sound():
+        warnings.warn("precision bf16: this CPU's oneDNN bf16 kernels return non-finite convolution "
+                      "gradients, so the run goes without oneDNN (about 10x slower than fp32); "
+                      "precision auto or fp32 avoids it", RuntimeWarning, stacklevel=3)
+        without_onednn: AbstractContextManager[object] = torch.backends.mkldnn.flags(enabled=False)
+    else:
+        without_onednn = contextlib.nullcontext()
     if enabled:
         if device.type == "cuda":
             # cuBLAS needs a fixed workspace for reproducible matmuls.
@@ -93,7 +139,8 @@ def torch_settings(enabled: bool, device: torch.device, num_threads: int) -> Ite
             torch.backends.cudnn.benchmark = False
         torch.use_deterministic_algorithms(True, warn_only=device.type != "cpu")
     try:
-        yield
+        with without_onednn:
+            yield
     finally:
         torch.use_deterministic_algorithms(prev, warn_only=prev_warn)
         torch.backends.cudnn.benchmark = prev_bench

@@ -16,10 +16,14 @@ def test_explicit_precisions_are_taken_as_given() -> None:
 
 def test_auto_follows_the_cpu(monkeypatch: pytest.MonkeyPatch) -> None:
     cpu = torch.device("cpu")
+    monkeypatch.setattr(runtime, "cpu_bf16_gradients_sound", lambda: True)
     monkeypatch.setattr(runtime, "cpu_has_bf16", lambda: False)
     assert runtime.resolve_precision("auto", cpu) == torch.float32
     monkeypatch.setattr(runtime, "cpu_has_bf16", lambda: True)
     assert runtime.resolve_precision("auto", cpu) == torch.bfloat16
+    # AMX whose kernels fail the probe: fp32.
+    monkeypatch.setattr(runtime, "cpu_bf16_gradients_sound", lambda: False)
+    assert runtime.resolve_precision("auto", cpu) == torch.float32
     # CUDA has bf16 whatever the host CPU.
     monkeypatch.setattr(runtime, "cpu_has_bf16", lambda: False)
     assert runtime.resolve_precision("auto", torch.device("cuda")) == torch.bfloat16
@@ -37,3 +41,42 @@ def test_autocast_runs_matmuls_in_the_dtype() -> None:
         assert (a @ a).dtype == torch.bfloat16
     with runtime.autocast(torch.float32, cpu):
         assert (a @ a).dtype == torch.float32
+
+
+def test_only_amx_counts_as_bf16_units(monkeypatch: pytest.MonkeyPatch) -> None:
+    """AVX512-BF16 without AMX gains little and its oneDNN kernels are unsound: not bf16 units."""
+    caps = {"avx512_bf16": True, "amx_bf16": False}
+    monkeypatch.setattr(torch.cpu, "get_capabilities", lambda: caps)
+    assert not runtime.cpu_has_bf16()
+    caps["amx_bf16"] = True
+    assert runtime.cpu_has_bf16()
+
+
+def test_the_bf16_probe_leaves_the_global_generator_alone() -> None:
+    runtime.cpu_bf16_gradients_sound.cache_clear()
+    torch.manual_seed(3)
+    expected = torch.rand(4)
+    torch.manual_seed(3)
+    assert isinstance(runtime.cpu_bf16_gradients_sound(), bool)
+    assert torch.equal(torch.rand(4), expected)
+
+
+def test_bf16_where_the_kernels_are_unsound_runs_without_onednn(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Regression: on AVX512-BF16 without AMX, a bf16 BNN read NaN from its second step."""
+    cpu = torch.device("cpu")
+    before = torch.backends.mkldnn.enabled
+    monkeypatch.setattr(runtime, "cpu_bf16_gradients_sound", lambda: False)
+    with pytest.warns(RuntimeWarning, match="without oneDNN"), runtime.torch_settings(False, cpu, 0, torch.bfloat16):
+        assert not torch.backends.mkldnn.enabled
+        # The convolution the probe checks: finite gradients without oneDNN.
+        w = torch.full((16, 16, 3, 3, 3), 0.01, requires_grad=True)
+        with runtime.autocast(torch.bfloat16, cpu):
+            y = torch.nn.functional.conv3d(torch.ones(48, 16, 2, 4, 8), w, stride=(1, 2, 2), padding=1)
+        y.float().sum().backward()
+        assert w.grad is not None and torch.isfinite(w.grad).all()
+    assert torch.backends.mkldnn.enabled == before
+    monkeypatch.setattr(runtime, "cpu_bf16_gradients_sound", lambda: True)
+    with runtime.torch_settings(False, cpu, 0, torch.bfloat16):
+        assert torch.backends.mkldnn.enabled == before
+    with runtime.torch_settings(False, cpu, 0, torch.float32):
+        assert torch.backends.mkldnn.enabled == before

@@ -41,8 +41,8 @@ __all__ = ["BottleneckBenchRow", "bench_bottleneck", "bench_precisions", "format
 def bench_precisions(spec: str, device: torch.device) -> tuple[str, ...]:
     """The precisions ``bench --bottleneck`` measures for ``--set precision=spec``.
 
-    ``auto``: fp32, and bf16 where ``auto`` resolves to it (CUDA, or a CPU with bf16
-    matrix units). Elsewhere bf16 is emulated, several times slower than fp32, and its
+    ``auto``: fp32, and bf16 where ``auto`` resolves to it (CUDA, or a CPU with
+    AMX-BF16). Elsewhere bf16 is emulated, several times slower than fp32, and its
     pass would take long to tell only that: ``bf16`` measures it anyway. ``fp32``: fp32 only.
     """
     if spec not in PRECISIONS:
@@ -117,7 +117,7 @@ def bench_bottleneck(
             "device": device, "num_threads": threads, "log_every": max(1, steps), "seed": seed,
         })
         dtype = resolve_precision(precision, dev)
-        with torch_settings(cfg.deterministic, dev, threads):
+        with torch_settings(cfg.deterministic, dev, threads, dtype):
             net = _network_rate(model_cfg, cfg, one, steps, dev, dtype)
         fn = array_batches_fn(clean, noisy, scenario, batch_size=batch_size, seed=seed)
         with tempfile.TemporaryDirectory() as tmp:
@@ -129,7 +129,7 @@ def bench_bottleneck(
 def format_bottleneck_bench(rows: list[BottleneckBenchRow], model_cfg: BottleneckConfig, threads: int) -> str:
     """The rows as a table, with each precision's speed relative to the first row's."""
     base = rows[0]
-    units = "AMX-BF16 or AVX512-BF16 present" if cpu_has_bf16() else "no bf16 matrix units on this CPU"
+    units = "AMX-BF16 present" if cpu_has_bf16() else "no AMX-BF16 on this CPU"
     lines = [
         f"BNN training, d = {model_cfg.latent_dim}, channels {list(model_cfg.channels)}, "
         f"observations {model_cfg.observation_shape}, batch {base.batch_size}, {threads} thread(s); {units}",

@@ -185,7 +185,7 @@ def _train(
     dtype = resolve_precision(cfg.precision, device)
     say: Callable[[str], None] = (lambda s: print(s, flush=True)) if progress else (lambda s: None)
 
-    with torch_settings(cfg.deterministic, device, cfg.num_threads):
+    with torch_settings(cfg.deterministic, device, cfg.num_threads, dtype):
         # Seeding: the model's initial weights come from torch's global generator, the
         # trainer's own draws (validation subsampling) from a numpy generator.
         torch.manual_seed(cfg.seed)

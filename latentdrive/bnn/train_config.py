@@ -130,7 +130,7 @@ class BNNTrainConfig(Config):
     )
     precision: Precision = Field(
         "auto",
-        description="'auto' (bf16 autocast on CUDA and on CPUs with AMX-BF16 or AVX512-BF16, "
+        description="'auto' (bf16 autocast on CUDA and on CPUs with AMX-BF16, "
         "fp32 elsewhere), 'fp32' or 'bf16'. Weights, optimizer state and losses stay float32. "
         "bf16 results are reproducible on one machine, not bitwise across machines.",
     )

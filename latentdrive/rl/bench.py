@@ -110,7 +110,7 @@ class TrainBenchRow:
 
 def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> TrainBenchRow:
     device = resolve_device(cfg.device)
-    with torch_settings(True, device, cfg.threads):
+    with torch_settings(True, device, cfg.threads, resolve_precision(cfg.precision, device)):
         net = build_network(cfg, encoder_config(cfg)).to(device)
         vec = make_vec(list(cfg.scenarios), cfg.envs, backend=cfg.backend, observation=cfg.observation.model_dump())
         learner = Learner(cfg, net, device, cfg.envs * vec.n_av)

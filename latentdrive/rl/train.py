@@ -397,7 +397,8 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
         check_mission_pays(cfg)
     init_state = init_weights(cfg) if cfg.init_from and not resume else None
     root.mkdir(parents=True, exist_ok=True)
-    with dir_lock(root, "train-policy"), torch_settings(True, device, cfg.threads):
+    with (dir_lock(root, "train-policy"),
+          torch_settings(True, device, cfg.threads, resolve_precision(cfg.precision, device))):
         net = build_network(cfg, enc, load_bnn_weights=not bnn_gone).to(device)
         if init_state is not None:
             try:

@@ -37,6 +37,7 @@ def test_auto_measures_bf16_only_where_it_is_native(monkeypatch) -> None:
     from latentdrive.bnn import bench
 
     cpu = torch.device("cpu")
+    monkeypatch.setattr("latentdrive.runtime.cpu_bf16_gradients_sound", lambda: True)
     monkeypatch.setattr("latentdrive.runtime.cpu_has_bf16", lambda: False)
     assert bench.bench_precisions("auto", cpu) == ("fp32",)
     assert bench.bench_precisions("bf16", cpu) == ("fp32", "bf16")

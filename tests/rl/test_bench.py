@@ -1,11 +1,14 @@
 """`latentdrive bench --train`: the real training loop, timed per mode, repeatable."""
 
+from typing import Any
+
 import pytest
 import torch
 
 from latentdrive.rl.bench import bench_training, format_train_bench
 
-SMALL = {"observation": {"height": 16, "width": 32, "frames": 2},
+# fp32 unless a test says otherwise: ``auto`` would add a bf16 row on CPUs with AMX-BF16.
+SMALL: dict[str, Any] = {"precision": "fp32", "observation": {"height": 16, "width": 32, "frames": 2},
          "dqn": {"learning_starts": 16, "batch_size": 4, "buffer_size": 200}}
 
 
