@@ -5,9 +5,8 @@ One ``precision`` setting (``auto|fp32|bf16``) serves every network (the BNN, th
 encoder, the VFAN learner): :func:`resolve_precision` turns it into a dtype for a device,
 and :func:`autocast` runs a block in it. ``auto`` picks bf16 autocast on CUDA and on CPUs
 with AMX-BF16 matrix units, where it is faster, and fp32 elsewhere: where bf16 is emulated
-it is slower, and on CPUs with AVX512-BF16 but no AMX it gains little (1.2× on the BNN's
-train step) and oneDNN's kernels there return non-finite weight gradients for strided 3D
-convolutions (:func:`cpu_bf16_gradients_sound`).
+it is slower, and on CPUs with AVX512-BF16 but no AMX oneDNN's kernels return non-finite
+weight gradients for strided 3D convolutions (:func:`cpu_bf16_gradients_sound`).
 """
 
 from __future__ import annotations
