@@ -134,7 +134,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise LatentDriveError(str(exc)) from None
         model_cfg = validate(BottleneckConfig, fields, prefix="model.")
         if precision == "auto" and "bf16" not in precisions:
-            _say("bf16 not measured: no bf16 matrix units here, so bf16 would be emulated and slow "
+            _say("bf16 not measured: precision auto is fp32 here (no AMX-BF16, or its kernels unsound), "
+                 "where bf16 is slower "
                  "(--set precision=bf16 measures it anyway)")
         _say(f"benchmarking BNN training in {' and '.join(precisions)} ({args.steps} steps of {args.batch_size}) ...")
         brows = bench_bottleneck(model_cfg, batch_size=args.batch_size, steps=args.steps, threads=threads,

@@ -22,7 +22,7 @@ from typing import Literal
 import torch
 
 __all__ = ["PRECISIONS", "Precision", "autocast", "check_device", "cpu_bf16_gradients_sound", "cpu_has_bf16",
-           "resolve_device", "resolve_precision", "torch_settings", "usable_cpus"]
+           "onednn", "resolve_device", "resolve_precision", "torch_settings", "usable_cpus"]
 
 Precision = Literal["auto", "fp32", "bf16"]
 #: The values of every config's ``precision`` field.
@@ -45,7 +45,8 @@ def resolve_device(spec: str) -> torch.device:
 
 
 def cpu_has_bf16() -> bool:
-    """Whether this CPU has AMX-BF16 matrix units, where bf16 autocast pays (1.5–2.5× here)."""
+    """Whether this CPU has AMX-BF16 matrix units, where bf16 autocast is faster than fp32
+    (`latentdrive bench --bottleneck` and `bench --train` measure both in one run)."""
     get = getattr(torch.cpu, "get_capabilities", None)
     if get is None:  # older torch: no way to tell, so never guess bf16
         return False
@@ -63,22 +64,29 @@ def cpu_bf16_gradients_sound() -> bool:
     second step. The probe runs that convolution once (a few ms, cached) on its own
     generator, leaving torch's global one untouched.
     """
-    g = torch.Generator().manual_seed(0)
-    x = torch.rand(48, 16, 2, 4, 8, generator=g)
-    weight = (torch.rand(16, 16, 3, 3, 3, generator=g) - 0.5) * 0.1
-
-    def grad(dtype: torch.dtype) -> torch.Tensor:
+    def grad(x: torch.Tensor, weight: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         w = weight.clone().requires_grad_(True)
-        with autocast(dtype, torch.device("cpu")):
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=dtype == torch.bfloat16):
             y = torch.nn.functional.conv3d(x, w, stride=(1, 2, 2), padding=1)
         y.float().sum().backward()
         assert w.grad is not None
         return w.grad
 
-    with torch.backends.mkldnn.flags(enabled=True):
-        low = grad(torch.bfloat16)
-    ref = grad(torch.float32)
+    # A caller may be under no_grad, inference mode or its own autocast: the probe is not.
+    with torch.inference_mode(False), torch.enable_grad(), onednn(True):
+        g = torch.Generator().manual_seed(0)
+        x = torch.rand(48, 16, 2, 4, 8, generator=g)
+        weight = (torch.rand(16, 16, 3, 3, 3, generator=g) - 0.5) * 0.1
+        low = grad(x, weight, torch.bfloat16)
+        ref = grad(x, weight, torch.float32)
     return bool(torch.isfinite(low).all() and torch.allclose(low, ref, rtol=0.05, atol=0.05 * float(ref.abs().max())))
+
+
+def onednn(enabled: bool) -> AbstractContextManager[object]:
+    """oneDNN on or off for a block, its other flags (determinism, TF32) as they are."""
+    m = torch.backends.mkldnn
+    return m.flags(enabled=enabled, deterministic=m.deterministic, allow_tf32=m.allow_tf32,
+                   fp32_precision=m.fp32_precision)
 
 
 def resolve_precision(spec: str, device: torch.device) -> torch.dtype:
@@ -115,22 +123,23 @@ def torch_settings(enabled: bool, device: torch.device, num_threads: int,
     """Set deterministic algorithms and the thread count for a run; restore the process's after.
 
     A bf16 run on a CPU whose oneDNN bf16 gradients are unsound
-    (:func:`cpu_bf16_gradients_sound`) runs without oneDNN: correct, but about ten times
-    slower than fp32, so it warns; ``auto`` never chooses it.
+    (:func:`cpu_bf16_gradients_sound`) runs without oneDNN: finite gradients (within 1–2%
+    of fp32's, where oneDNN's are inf), but much slower than fp32, so it warns; ``auto``
+    never chooses it.
     """
+    if dtype == torch.bfloat16 and device.type == "cpu" and not cpu_bf16_gradients_sound():
+        warnings.warn("precision bf16: this CPU's oneDNN bf16 kernels return non-finite convolution "
+                      "gradients, so the run goes without oneDNN, much slower than fp32; "
+                      "precision auto or fp32 avoids it", RuntimeWarning, stacklevel=3)
+        backend = onednn(False)
+    else:
+        backend = contextlib.nullcontext()
     prev = torch.are_deterministic_algorithms_enabled()
     prev_warn = torch.is_deterministic_algorithms_warn_only_enabled()
     prev_bench = torch.backends.cudnn.benchmark
     prev_threads = torch.get_num_threads()
     if num_threads > 0:
         torch.set_num_threads(num_threads)
-    if dtype == torch.bfloat16 and device.type == "cpu" and not cpu_bf16_gradients_sound():
-        warnings.warn("precision bf16: this CPU's oneDNN bf16 kernels return non-finite convolution "
-                      "gradients, so the run goes without oneDNN (about 10x slower than fp32); "
-                      "precision auto or fp32 avoids it", RuntimeWarning, stacklevel=3)
-        without_onednn: AbstractContextManager[object] = torch.backends.mkldnn.flags(enabled=False)
-    else:
-        without_onednn = contextlib.nullcontext()
     if enabled:
         if device.type == "cuda":
             # cuBLAS needs a fixed workspace for reproducible matmuls.
@@ -138,7 +147,7 @@ def torch_settings(enabled: bool, device: torch.device, num_threads: int,
             torch.backends.cudnn.benchmark = False
         torch.use_deterministic_algorithms(True, warn_only=device.type != "cpu")
     try:
-        with without_onednn:
+        with backend:
             yield
     finally:
         torch.use_deterministic_algorithms(prev, warn_only=prev_warn)

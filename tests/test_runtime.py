@@ -68,15 +68,41 @@ def test_bf16_where_the_kernels_are_unsound_runs_without_onednn(monkeypatch: pyt
     monkeypatch.setattr(runtime, "cpu_bf16_gradients_sound", lambda: False)
     with pytest.warns(RuntimeWarning, match="without oneDNN"), runtime.torch_settings(False, cpu, 0, torch.bfloat16):
         assert not torch.backends.mkldnn.enabled
-        # The convolution the probe checks: finite gradients without oneDNN.
-        w = torch.full((16, 16, 3, 3, 3), 0.01, requires_grad=True)
+        # The probe's convolution and data, where oneDNN on AVX512-BF16 returns inf:
+        # finite gradients close to fp32's without oneDNN.
+        g = torch.Generator().manual_seed(0)
+        x = torch.rand(48, 16, 2, 4, 8, generator=g)
+        w = ((torch.rand(16, 16, 3, 3, 3, generator=g) - 0.5) * 0.1).requires_grad_(True)
         with runtime.autocast(torch.bfloat16, cpu):
-            y = torch.nn.functional.conv3d(torch.ones(48, 16, 2, 4, 8), w, stride=(1, 2, 2), padding=1)
+            y = torch.nn.functional.conv3d(x, w, stride=(1, 2, 2), padding=1)
         y.float().sum().backward()
         assert w.grad is not None and torch.isfinite(w.grad).all()
+        w32 = w.detach().clone().requires_grad_(True)
+        torch.nn.functional.conv3d(x, w32, stride=(1, 2, 2), padding=1).sum().backward()
+        assert w32.grad is not None
+        assert torch.allclose(w.grad, w32.grad, rtol=0.05, atol=0.05 * float(w32.grad.abs().max()))
     assert torch.backends.mkldnn.enabled == before
     monkeypatch.setattr(runtime, "cpu_bf16_gradients_sound", lambda: True)
     with runtime.torch_settings(False, cpu, 0, torch.bfloat16):
         assert torch.backends.mkldnn.enabled == before
     with runtime.torch_settings(False, cpu, 0, torch.float32):
         assert torch.backends.mkldnn.enabled == before
+
+
+def test_the_bf16_probe_runs_under_no_grad_and_inference_mode() -> None:
+    runtime.cpu_bf16_gradients_sound.cache_clear()
+    with torch.no_grad():
+        a = runtime.cpu_bf16_gradients_sound()
+    runtime.cpu_bf16_gradients_sound.cache_clear()
+    with torch.inference_mode():
+        b = runtime.cpu_bf16_gradients_sound()
+    assert a == b
+
+
+def test_onednn_toggles_only_whether_it_is_used() -> None:
+    m = torch.backends.mkldnn
+    before = (m.enabled, m.deterministic, m.allow_tf32, m.fp32_precision)
+    with runtime.onednn(False):
+        assert not m.enabled
+        assert (m.deterministic, m.allow_tf32, m.fp32_precision) == before[1:]
+    assert (m.enabled, m.deterministic, m.allow_tf32, m.fp32_precision) == before

@@ -29,6 +29,7 @@ from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.runtime import (
     PRECISIONS,
     autocast,
+    cpu_bf16_gradients_sound,
     cpu_has_bf16,
     resolve_device,
     resolve_precision,
@@ -42,8 +43,8 @@ def bench_precisions(spec: str, device: torch.device) -> tuple[str, ...]:
     """The precisions ``bench --bottleneck`` measures for ``--set precision=spec``.
 
     ``auto``: fp32, and bf16 where ``auto`` resolves to it (CUDA, or a CPU with
-    AMX-BF16). Elsewhere bf16 is emulated, several times slower than fp32, and its
-    pass would take long to tell only that: ``bf16`` measures it anyway. ``fp32``: fp32 only.
+    AMX-BF16). Elsewhere bf16 is slower than fp32 (emulated, or without oneDNN where its
+    bf16 kernels are unsound), and its pass would take long to tell only that: ``bf16`` measures it anyway. ``fp32``: fp32 only.
     """
     if spec not in PRECISIONS:
         raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {spec!r}")
@@ -130,6 +131,8 @@ def format_bottleneck_bench(rows: list[BottleneckBenchRow], model_cfg: Bottlenec
     """The rows as a table, with each precision's speed relative to the first row's."""
     base = rows[0]
     units = "AMX-BF16 present" if cpu_has_bf16() else "no AMX-BF16 on this CPU"
+    if cpu_has_bf16() and not cpu_bf16_gradients_sound():
+        units += ", its oneDNN bf16 gradients unsound"
     lines = [
         f"BNN training, d = {model_cfg.latent_dim}, channels {list(model_cfg.channels)}, "
         f"observations {model_cfg.observation_shape}, batch {base.batch_size}, {threads} thread(s); {units}",
