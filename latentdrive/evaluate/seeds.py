@@ -87,7 +87,8 @@ def read_seed_eval(path: str | Path) -> SeedEval:
 def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str, Any]:
     """Mean failure rates over ``evals`` (one per training seed) with intervals over seeds.
 
-    Returns ``{"evaluation", "policies", "compare", "rows"}``; ``rows[scenario]`` holds
+    Returns ``{"evaluation", "policies", "compare", "compare_runs", "rows"}`` (``compare``:
+    the distinct B policies, sorted; ``compare_runs``: each seed's B, in the order given); ``rows[scenario]`` holds
     ``rates`` (per seed), ``mean``/``lo``/``hi`` (rliable, over seeds) and, with a comparison,
     ``compare_rates``, ``differences`` and ``p_values`` per seed and the mean difference
     with its interval. Raises :class:`ConfigError` when the files score different episodes
@@ -135,7 +136,7 @@ def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str,
                        difference={"mean": d["mean"], "lo": d["lo"], "hi": d["hi"]})
         rows[name] = row
     return {"evaluation": head.evaluation, "policies": [e.policy for e in evals], "compare": sorted(compares),
-            "rows": rows}
+            "compare_runs": [e.compare for e in evals], "rows": rows}
 
 
 def _pct(x: float, sign: str = "") -> str:
@@ -158,12 +159,15 @@ def format_seeds(agg: dict[str, Any]) -> str:
     has_cmp = bool(agg["compare"])
     head = ["scenario", *[f"run {i + 1}" for i in range(n)], "mean [95% CI]"]
     if has_cmp:
-        head += [f"B = {', '.join(agg['compare'])}", "A−B, mean [95% CI]", "p per seed (McNemar)"]
+        # One reference for every seed, or each seed against its own run (named in run order).
+        paired = len(agg["compare"]) > 1
+        b_head = f"B, runs 1..{n} = {', '.join(agg['compare_runs'])}" if paired else f"B = {agg['compare'][0]}"
+        head += [b_head, "A−B, mean [95% CI]", "p per seed (McNemar)"]
     rows = []
     for name, row in agg["rows"].items():
         cells = [name, *[_pct(r) for r in row["rates"]], _interval(row["mean"], row["lo"], row["hi"])]
         if has_cmp:
-            b = sorted(set(row["compare_rates"]))
+            b = row["compare_rates"] if paired else row["compare_rates"][:1]
             d = row["difference"]
             cells += [" / ".join(_pct(x) for x in b), _interval(d["mean"], d["lo"], d["hi"], "+"),
                       " ".join(f"{p:.2g}" for p in row["p_values"])]

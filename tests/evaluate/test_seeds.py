@@ -125,3 +125,18 @@ def test_a_file_that_is_not_an_evaluation_is_named(tmp_path, capsys, text) -> No
     assert main(["aggregate", str(bad)]) != 0
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("latentdrive: error:") and "bad.json" in err[0]
+
+
+def test_seeds_against_their_own_runs_print_each_b_in_run_order(tmp_path, capsys) -> None:
+    """Regression: the B column showed the distinct B rates sorted, losing which seed each was."""
+    docs = [_doc(r, {"merge": 0.9 - 0.1 * i, "highway": 0.3}, policy=f"runs/lat-s{i}") for i, r in enumerate(SEEDS)]
+    for i, d in enumerate(docs):
+        d["compare"]["b"] = f"/abs/runs/rand-s{i}" if i else f"runs/rand-s{i}"
+    files = _files(tmp_path, docs)
+    assert main(["aggregate", *map(str, files)]) == 0
+    out = capsys.readouterr().out
+    assert "B, runs 1..3 = runs/rand-s0, /abs/runs/rand-s1, /abs/runs/rand-s2" in out
+    row = next(line for line in out.splitlines() if line.startswith("merge"))
+    assert "90.0 / 80.0 / 70.0" in row
+    highway = next(line for line in out.splitlines() if line.startswith("highway"))
+    assert "30.0 / 30.0 / 30.0" in highway
