@@ -123,8 +123,8 @@ def torch_settings(enabled: bool, device: torch.device, num_threads: int,
     """Set deterministic algorithms and the thread count for a run; restore the process's after.
 
     A bf16 run on a CPU whose oneDNN bf16 gradients are unsound
-    (:func:`cpu_bf16_gradients_sound`) runs without oneDNN: finite gradients (within 1–2%
-    of fp32's, where oneDNN's are inf), but much slower than fp32, so it warns; ``auto``
+    (:func:`cpu_bf16_gradients_sound`) runs without oneDNN: finite gradients at bf16's
+    precision (where oneDNN's are inf), but much slower than fp32, so it warns; ``auto``
     never chooses it.
     """
     if dtype == torch.bfloat16 and device.type == "cpu" and not cpu_bf16_gradients_sound():
