@@ -333,14 +333,21 @@ def _train(
                 mem = f"peak rss {last['peak_rss_mb']:.0f} MB"
                 if "peak_cuda_mb" in last:
                     mem += f", cuda {last['peak_cuda_mb']:.0f} MB"
+                if validated:
+                    held_out = (f"val {val['val_loss']:.5f} (objective {val['val_train_loss']:.5f}, "
+                                f"vehicle cells {val['val_vehicle_l2']:.4f}, "
+                                f"recall {val['val_vehicle_recall']:.2f}, "
+                                f"precision {val['val_vehicle_precision']:.2f}) "
+                                f"mmd {val['val_mmd']:.4f}{' (best)' if is_best else ''}")
+                elif val_batches_fn is not None:
+                    # Not "val nan": nothing went wrong, this epoch was not validated.
+                    held_out = f"not validated (every {cfg.val_every} epochs and the last)"
+                else:
+                    held_out = "no validation data"
                 say(
                     f"epoch {epoch + 1}/{cfg.total_epochs} [{phase}] step {step} "
                     f"loss {last['train_loss']:.5f} (recon {last['train_recon']:.5f}, "
-                    f"reg {last['train_reg']:.4f}) "
-                    f"val {val['val_loss']:.5f} (objective {val['val_train_loss']:.5f}, "
-                    f"vehicle cells {val['val_vehicle_l2']:.4f}, "
-                    f"recall {val['val_vehicle_recall']:.2f}, precision {val['val_vehicle_precision']:.2f}) "
-                    f"mmd {val['val_mmd']:.4f}{' (best)' if is_best and validated else ''} | "
+                    f"reg {last['train_reg']:.4f}) {held_out} | "
                     f"{last['samples_per_s']:.0f} samples/s | {elapsed:.1f} s | {mem}"
                 )
         finally:

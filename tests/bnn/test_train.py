@@ -551,3 +551,16 @@ def test_val_samples_caps_the_samples_each_validation_scores(
     cfg = _small_cfg(pretrain_epochs=1, mixed_epochs=1, lambda_distance=0.0, val_every=1, val_samples=val_samples)
     train_bnn(cfg, MODEL, train_fn, val_fn, tmp_path / "run", progress=False)
     assert seen == [scored, scored]
+
+
+def test_an_epoch_not_validated_says_so_rather_than_printing_nan(
+    data: dict[str, np.ndarray], tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Regression: epochs between validations printed ``val nan (... recall nan ...)``."""
+    train_fn, val_fn = _fns(data, 32, 16, stratify_from=1)
+    train_bnn(_small_cfg(val_every=2, precision="fp32"), MODEL, train_fn, val_fn, tmp_path / "run", progress=True)
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("epoch ")]
+    assert len(lines) == 3
+    assert "not validated (every 2 epochs and the last)" in lines[0]
+    assert "recall" in lines[1] and "recall" in lines[2]
+    assert "nan" not in lines[0]  # (a validated line may say precision nan: nothing drawn)
