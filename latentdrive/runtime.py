@@ -21,7 +21,7 @@ from typing import Literal
 
 import torch
 
-__all__ = ["PRECISIONS", "Precision", "autocast", "check_device", "cpu_bf16_gradients_sound", "cpu_has_bf16",
+__all__ = ["PRECISIONS", "Precision", "autocast", "bf16_conv_gradients_agree", "check_device", "cpu_bf16_gradients_sound", "cpu_has_bf16",
            "onednn", "resolve_device", "resolve_precision", "torch_settings", "usable_cpus"]
 
 Precision = Literal["auto", "fp32", "bf16"]
@@ -53,16 +53,12 @@ def cpu_has_bf16() -> bool:
     return bool(get().get("amx_bf16"))
 
 
-@functools.cache
-def cpu_bf16_gradients_sound() -> bool:
-    """Whether bf16 autocast on this CPU, through oneDNN, gives the weight gradient of a
-    strided 3D convolution that fp32 gives (to bf16's precision).
+def bf16_conv_gradients_agree() -> bool:
+    """Whether bf16 autocast, with torch's backends as they are set now, gives the weight
+    gradient of the BNN encoder's last stage that fp32 gives (to bf16's precision).
 
-    torch 2.13's oneDNN kernels for AVX512-BF16 without AMX (``jit_bf16:avx512_core_bf16``)
-    return inf for the BNN encoder's last stage (48 × 16 channels, 2 × 4 × 8 input,
-    3 × 3 × 3 kernel, stride 1 × 2 × 2): a BNN trained in bf16 there reads NaN from its
-    second step. The probe runs that convolution once (a few ms, cached) on its own
-    generator, leaving torch's global one untouched.
+    The convolution: 48 × 16 channels, a 2 × 4 × 8 input, a 3 × 3 × 3 kernel, stride
+    1 × 2 × 2. Its data come from a generator of its own, leaving torch's global one untouched.
     """
     def grad(x: torch.Tensor, weight: torch.Tensor, dtype: torch.dtype) -> torch.Tensor:
         w = weight.clone().requires_grad_(True)
@@ -72,14 +68,26 @@ def cpu_bf16_gradients_sound() -> bool:
         assert w.grad is not None
         return w.grad
 
-    # A caller may be under no_grad, inference mode or its own autocast: the probe is not.
-    with torch.inference_mode(False), torch.enable_grad(), onednn(True):
+    # A caller may be under no_grad, inference mode or its own autocast: the check is not.
+    with torch.inference_mode(False), torch.enable_grad():
         g = torch.Generator().manual_seed(0)
         x = torch.rand(48, 16, 2, 4, 8, generator=g)
         weight = (torch.rand(16, 16, 3, 3, 3, generator=g) - 0.5) * 0.1
         low = grad(x, weight, torch.bfloat16)
         ref = grad(x, weight, torch.float32)
     return bool(torch.isfinite(low).all() and torch.allclose(low, ref, rtol=0.05, atol=0.05 * float(ref.abs().max())))
+
+
+@functools.cache
+def cpu_bf16_gradients_sound() -> bool:
+    """:func:`bf16_conv_gradients_agree` through oneDNN, once per process.
+
+    torch 2.13's oneDNN kernels for AVX512-BF16 without AMX (``jit_bf16:avx512_core_bf16``)
+    return inf or far-off weight gradients for that convolution: a BNN trained in bf16 there
+    reads NaN from its second step.
+    """
+    with onednn(True):
+        return bf16_conv_gradients_agree()
 
 
 def onednn(enabled: bool) -> AbstractContextManager[object]:

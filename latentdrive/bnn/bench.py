@@ -44,7 +44,8 @@ def bench_precisions(spec: str, device: torch.device) -> tuple[str, ...]:
 
     ``auto``: fp32, and bf16 where ``auto`` resolves to it (CUDA, or a CPU with
     AMX-BF16). Elsewhere bf16 is slower than fp32 (emulated, or without oneDNN where its
-    bf16 kernels are unsound), and its pass would take long to tell only that: ``bf16`` measures it anyway. ``fp32``: fp32 only.
+    bf16 kernels are unsound), and its pass would take long to tell only that: ``bf16``
+    measures it anyway. ``fp32``: fp32 only.
     """
     if spec not in PRECISIONS:
         raise ValueError(f"precision must be one of {', '.join(PRECISIONS)}, got {spec!r}")
