@@ -28,7 +28,7 @@ the planner has no random stream.
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -55,6 +55,13 @@ class PlannerConfig(Config):
     discount: float = Field(0.95, gt=0.0, le=1.0, description="Per-step discount of the planning return.")
     crash_penalty: float = Field(-20.0, le=0.0, description="Added to the planning return on the step any AV crashes.")
     tail: int = Field(2, ge=0, le=10, description="Steps of braking (every AV Decelerates) simulated after the horizon; a crash there is penalized, no reward counts.")
+    human_routes: Literal["known", "follow_road"] = Field(
+        "known",
+        description="What the lookahead assumes about where each human driver goes. known: the "
+        "route it was given at spawn (the simulator's truth); follow_road: the road ahead, "
+        "taking at each junction the continuation closest to its lane, so the planner no "
+        "longer knows which exit or turn a human will take (it still knows every position, "
+        "speed and driver parameter).")
 
 
 def candidate_sequences(depth: int, switch: int) -> NDArray[np.int64]:
@@ -75,6 +82,8 @@ def _scores(sim: FastBatch, env_ids: NDArray[np.int64], plans: NDArray[np.int64]
     environment; ``steps_left`` ``(E,)`` decisions before the time limit. Returns ``(E, C)``."""
     n_env, n_cand, n_av, depth = plans.shape
     branches = sim.branch(env_ids, n_cand)
+    if cfg.human_routes == "follow_road":
+        branches.forget_human_routes()
     flat = plans.reshape(n_env * n_cand, n_av, depth)
     left = np.repeat(steps_left, n_cand)
     spec_of = [sim.specs[int(e)] for e in env_ids]

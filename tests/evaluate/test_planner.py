@@ -64,8 +64,8 @@ def test_the_planner_refuses_a_backend_it_cannot_branch() -> None:
 
 
 @pytest.mark.parametrize("bad", [{"depth": 0}, {"rounds": 0}, {"crash_penalty": 1.0}, {"discount": 0.0},
-                                 {"horizon": 3}])
-def test_bad_planner_settings_are_refused(bad: dict[str, float]) -> None:
+                                 {"horizon": 3}, {"human_routes": "guess"}])
+def test_bad_planner_settings_are_refused(bad: dict[str, object]) -> None:
     from latentdrive.evaluate.planner import planner_config
 
     with pytest.raises(ConfigError, match="planner"):

@@ -19,7 +19,17 @@ from latentdrive.actions import N_ACTIONS, idle_when_done
 from latentdrive.sim.fast.kstep import step_envs
 from latentdrive.sim.fast.network import LaneTable
 from latentdrive.sim.fast.scratch import Scratch
-from latentdrive.sim.fast.state import ARRIVED, CRASHED, SPEED, TIME, State
+from latentdrive.sim.fast.state import (
+    ARRIVED,
+    CRASHED,
+    HV,
+    KIND,
+    ROUTE_HEAD,
+    ROUTE_LEN,
+    SPEED,
+    TIME,
+    State,
+)
 
 __all__ = ["BranchPart", "Branches", "take_rows"]
 
@@ -73,6 +83,18 @@ class Branches:
             done = p.state.flag[CRASHED, :, : self.n_av] | p.state.flag[ARRIVED, :, : self.n_av]
             a = idle_when_done(a, done)
             step_envs(p.table, p.state, np.arange(p.out.size, dtype=np.int64), a, p.scratch)
+
+    def forget_human_routes(self) -> None:
+        """Drop every human driver's remaining route in these branches.
+
+        From here on each HV follows the road: at a junction it takes the continuation
+        closest to its lane (as an HV without a destination does), not the exit or turn it
+        was given at spawn. A planner that branches after this no longer knows where the
+        human drivers are going; the environments branched from keep their routes.
+        """
+        for p in self._parts:
+            human = p.state.i[KIND] == HV
+            p.state.i[ROUTE_LEN][human] = p.state.i[ROUTE_HEAD][human]
 
     def agents(self) -> tuple[NDArray[np.float64], NDArray[np.bool_], NDArray[np.bool_]]:
         """Every branch's AV speeds (m/s), crashed and arrived flags, each ``(M, n_av)``."""

@@ -8,7 +8,8 @@ import pytest
 from latentdrive.actions import IDLE
 from latentdrive.scenarios import SCENARIOS, get_spec
 from latentdrive.sim.fast import FastBatch
-from latentdrive.sim.fast.state import ARRIVED, CRASHED
+from latentdrive.sim.fast.branch import Branches
+from latentdrive.sim.fast.state import ARRIVED, AV, CRASHED, HV, KIND, ROUTE_HEAD, ROUTE_LEN, X, Y
 
 
 def _idle_done(batch: FastBatch, actions: np.ndarray) -> np.ndarray:
@@ -88,3 +89,48 @@ def test_bad_branch_requests_are_refused() -> None:
     mixed.reset([0, 1])
     with pytest.raises(ValueError, match="AV count"):
         mixed.branch([0, 1], 1)
+
+
+def _advance_idle(batch: FastBatch, branches: Branches, steps: int) -> None:
+    n_av = branches.n_av
+    for _ in range(steps):
+        acts = np.full((batch.num_envs, n_av), IDLE, dtype=np.int64)
+        branches.advance(acts)
+        batch.advance(acts)
+
+
+def test_forgetting_human_routes_empties_only_the_branches_human_routes() -> None:
+    spec = get_spec("intersection")
+    batch = FastBatch([spec] * 4)
+    batch.reset([0, 1, 2, 3])
+    st = batch._groups[0].state
+    before = [a.copy() for a in st]
+    branches = batch.branch([0, 1, 2, 3], copies=1)
+    branches.forget_human_routes()
+    part = branches._parts[0].state
+    human, av = part.i[KIND] == HV, part.i[KIND] == AV
+    assert (st.i[ROUTE_LEN][st.i[KIND] == HV] > st.i[ROUTE_HEAD][st.i[KIND] == HV]).any()
+    np.testing.assert_array_equal(part.i[ROUTE_LEN][human], part.i[ROUTE_HEAD][human])
+    np.testing.assert_array_equal(part.i[ROUTE_LEN][av], st.i[ROUTE_LEN][av])
+    for a, b in zip(st, before, strict=True):  # the batch keeps every route
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize(("name", "routes_matter"), [("intersection", True), ("highway", False)])
+def test_a_branch_without_human_routes_drives_them_along_the_road(name: str, routes_matter: bool) -> None:
+    # Intersection HVs are given turns; without them a branch sends some elsewhere. Highway
+    # HVs have no destination, so the branch goes on exactly as the environment does.
+    spec = get_spec(name)
+    batch = FastBatch([spec] * 4)
+    batch.reset([0, 1, 2, 3])
+    branches = batch.branch([0, 1, 2, 3], copies=1)
+    branches.forget_human_routes()
+    _advance_idle(batch, branches, 12)
+    st, part = batch._groups[0].state, branches._parts[0].state
+    human = (st.i[KIND] == HV) & ~st.flag[CRASHED]
+    apart = np.hypot(part.f[X] - st.f[X], part.f[Y] - st.f[Y])[human]
+    if routes_matter:
+        assert apart.max() > 5.0  # metres: at least one HV took another road
+    else:
+        np.testing.assert_array_equal(part.f[X], st.f[X])
+        np.testing.assert_array_equal(part.f[Y], st.f[Y])
