@@ -22,8 +22,10 @@ At each decision, for every environment at once:
    candidate (the lowest index on ties, so the planner is deterministic);
 4. every AV applies the first action of its plan.
 
-The other vehicles follow the simulator's own driver models. Same state, same decision:
-the planner has no random stream.
+The other vehicles follow the simulator's own driver models, each on the route it was
+given (so the planner knows which exit or turn every human driver will take);
+``human_routes="follow_road"`` takes that knowledge away and lets each human follow the road
+in the branches. Same state, same decision: the planner has no random stream.
 """
 
 from __future__ import annotations
