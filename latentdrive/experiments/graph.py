@@ -46,6 +46,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("dqn", "augment_shift"): 0,
     ("dqn", "explore_rule"): 0.0,
     ("keep",): "last",
+    ("planner", "human_routes"): "known",
 }
 
 
