@@ -39,7 +39,9 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
 
     names = args.specs or list(SCENARIOS)
     specs = [get_spec(n) for n in names]  # unknown names fail before any output
-    print(f"{'scenario':<13}{'layout':<13}{'AVs':>4}{'HVs':>5}{'duration s':>11}{'sim/policy Hz':>14}  "
+    # A spec file's name can be longer than the presets'; the column fits the longest.
+    nw = max(13, *(len(s.name) + 1 for s in specs))
+    print(f"{'scenario':<{nw}}{'layout':<13}{'AVs':>4}{'HVs':>5}{'duration s':>11}{'sim/policy Hz':>14}  "
           f"{'AV target speeds m/s':<22}{'farthest mission':>17}  mission")
     for s in specs:
         name = s.name
@@ -48,7 +50,7 @@ def _cmd_scenarios(args: argparse.Namespace) -> int:
         speeds = ", ".join(f"{v:g}" for v in s.av_target_speeds)
         far = max(mission_routes(s), key=lambda r: r.distance)
         reach = f"{far.distance:.0f} m, {far.share(s.duration):.0%}"
-        print(f"{name:<13}{s.layout:<13}{s.n_av:>4}{s.n_hv:>5}{s.duration:>11g}"
+        print(f"{name:<{nw}}{s.layout:<13}{s.n_av:>4}{s.n_hv:>5}{s.duration:>11g}"
               f"{f'{s.simulation_frequency}/{s.policy_frequency}':>14}  {speeds:<22}{reach:>17}  {goal}")
     print("farthest mission: the longest route from a spawn region to mission completion, and the share "
           "of the duration it takes at the top target speed")

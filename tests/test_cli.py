@@ -1,6 +1,7 @@
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -86,6 +87,18 @@ def test_scenarios_prints_how_far_each_mission_is(capsys):
     assert main(["scenarios", "merge"]) == 0
     out = capsys.readouterr().out
     assert "300 m, 67%" in out and "roundabout" not in out
+
+
+def test_scenarios_keeps_a_long_name_apart_from_its_layout(tmp_path, capsys):
+    # Regression: names longer than the presets' ran into the layout column
+    # ("intersection-1avintersection").
+    src = (Path(__file__).parents[1] / "latentdrive/scenarios/presets/intersection.yaml").read_text()
+    spec = tmp_path / "long.yaml"
+    spec.write_text(src.replace("name: intersection", "name: intersection-one-av"))
+    assert main(["scenarios", str(spec), "merge"]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()[1:3]]
+    assert rows[0][:2] == ["intersection-one-av", "intersection"]
+    assert rows[1][:2] == ["merge", "merge"]
 
 
 def test_a_path_in_the_way_is_one_line(monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
