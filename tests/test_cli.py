@@ -1,11 +1,12 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import pytest
+import yaml
 
 from latentdrive.cli import main
+from latentdrive.scenarios import get_spec
 
 
 def run_cli(*args):
@@ -92,9 +93,8 @@ def test_scenarios_prints_how_far_each_mission_is(capsys):
 def test_scenarios_keeps_a_long_name_apart_from_its_layout(tmp_path, capsys):
     # Regression: names longer than the presets' ran into the layout column
     # ("intersection-1avintersection").
-    src = (Path(__file__).parents[1] / "latentdrive/scenarios/presets/intersection.yaml").read_text()
     spec = tmp_path / "long.yaml"
-    spec.write_text(src.replace("name: intersection", "name: intersection-one-av"))
+    spec.write_text(yaml.safe_dump({**get_spec("intersection").model_dump(mode="json"), "name": "intersection-one-av"}))
     assert main(["scenarios", str(spec), "merge"]) == 0
     rows = [line.split() for line in capsys.readouterr().out.splitlines()[1:3]]
     assert rows[0][:2] == ["intersection-one-av", "intersection"]
