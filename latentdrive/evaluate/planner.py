@@ -30,7 +30,8 @@ in the branches. Same state, same decision: the planner has no random stream.
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from collections.abc import Callable
+from typing import Any, Literal, NamedTuple
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,7 +44,7 @@ from latentdrive.rollout import Policy, PolicyInput
 from latentdrive.scenarios import RewardConfig
 from latentdrive.sim.fast import FastBatch
 
-__all__ = ["PlannerConfig", "candidate_sequences", "plan_actions", "planner_config", "planner_config_from_args",
+__all__ = ["Plan", "PlannerConfig", "candidate_sequences", "plan", "plan_actions", "planner_config", "planner_config_from_args",
            "planner_policy"]
 
 
@@ -126,23 +127,46 @@ def _scores(sim: FastBatch, env_ids: NDArray[np.int64], plans: NDArray[np.int64]
     return score.reshape(n_env, n_cand)
 
 
-def plan_actions(sim: FastBatch, env_ids: NDArray[np.int64], steps_left: NDArray[np.int64], n_av: int,
-                 cfg: PlannerConfig, reward: RewardConfig) -> NDArray[np.int64]:
-    """The planner's actions ``(E, n_av)`` for environments ``env_ids`` of ``sim``."""
+class Plan(NamedTuple):
+    """One decision of the planner for environments ``env_ids``."""
+
+    #: ``(E, n_av)`` the first action of each AV's adopted plan.
+    actions: NDArray[np.int64]
+    #: ``(E, n_av, N_ACTIONS)`` per AV and first action, the best planning return of a
+    #: candidate that starts with it, the other AVs on their plans, as scored in the last
+    #: round (what the AV's choice weighed; the adopted action's value is its row's maximum).
+    values: NDArray[np.float64]
+
+
+def plan(sim: FastBatch, env_ids: NDArray[np.int64], steps_left: NDArray[np.int64], n_av: int,
+         cfg: PlannerConfig, reward: RewardConfig) -> Plan:
+    """The planner's decision, with what each first action was worth, for ``env_ids`` of ``sim``."""
     cands = candidate_sequences(cfg.depth, cfg.switch)
     n_env, n_cand = env_ids.size, cands.shape[0]
     plans = np.full((n_env, n_av, cfg.depth), IDLE, dtype=np.int64)
+    values = np.full((n_env, n_av, N_ACTIONS), -np.inf)
+    first = [cands[:, 0] == a for a in range(N_ACTIONS)]
     for _ in range(cfg.rounds):
         for agent in range(n_av):
             joint = np.repeat(plans[:, None], n_cand, axis=1)  # (E, C, A, D)
             joint[:, :, agent, :] = cands[None]
-            best = np.argmax(_scores(sim, env_ids, joint, steps_left, cfg, reward), axis=1)
-            plans[:, agent, :] = cands[best]
-    return plans[:, :, 0]
+            scores = _scores(sim, env_ids, joint, steps_left, cfg, reward)
+            plans[:, agent, :] = cands[np.argmax(scores, axis=1)]
+            for a, starts in enumerate(first):
+                values[:, agent, a] = scores[:, starts].max(axis=1)
+    return Plan(plans[:, :, 0], values)
 
 
-def planner_policy(cfg: PlannerConfig | None = None, reward: RewardConfig | None = None) -> Policy:
-    """The planner as a :data:`~latentdrive.rollout.Policy` (needs the fast backend)."""
+def plan_actions(sim: FastBatch, env_ids: NDArray[np.int64], steps_left: NDArray[np.int64], n_av: int,
+                 cfg: PlannerConfig, reward: RewardConfig) -> NDArray[np.int64]:
+    """The planner's actions ``(E, n_av)`` for environments ``env_ids`` of ``sim``."""
+    return plan(sim, env_ids, steps_left, n_av, cfg, reward).actions
+
+
+def planner_policy(cfg: PlannerConfig | None = None, reward: RewardConfig | None = None,
+                   record: Callable[[Plan], None] | None = None) -> Policy:
+    """The planner as a :data:`~latentdrive.rollout.Policy` (needs the fast backend).
+    ``record``, when given, receives every decision's :class:`Plan` (with its values)."""
     config = cfg or PlannerConfig()
     rew = reward or RewardConfig()
 
@@ -155,7 +179,10 @@ def planner_policy(cfg: PlannerConfig | None = None, reward: RewardConfig | None
         env_ids = np.arange(inp.active.shape[0], dtype=np.int64)
         steps_left = np.asarray([sim.specs[e].max_steps - round(s.time * sim.specs[e].policy_frequency)
                                  for e, s in enumerate(inp.scenes)], dtype=np.int64)
-        return plan_actions(sim, env_ids, steps_left, n_av, config, rew)
+        decision = plan(sim, env_ids, steps_left, n_av, config, rew)
+        if record is not None:
+            record(decision)
+        return decision.actions
 
     return policy
 

@@ -9,7 +9,7 @@ import pytest
 
 from latentdrive.actions import ACTION_NAMES
 from latentdrive.config import ConfigError
-from latentdrive.evaluate.planner import PlannerConfig, candidate_sequences, planner_policy
+from latentdrive.evaluate.planner import Plan, PlannerConfig, candidate_sequences, planner_policy
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.rollout import rollout
@@ -45,6 +45,24 @@ def test_same_seed_same_decisions() -> None:
 
     for a, b in zip(actions(), actions(), strict=True):
         np.testing.assert_array_equal(a, b)
+
+
+def test_the_adopted_action_is_the_best_valued_one() -> None:
+    decisions: list[Plan] = []
+    vec = make_vec("merge", 2)
+    taken = []
+    for k, rec in enumerate(rollout(vec, planner_policy(FAST, record=decisions.append), seed=123)):
+        taken.append(rec.actions)
+        if k == 5:
+            break
+    assert len(decisions) == len(taken) == 6
+    for d, acted in zip(decisions, taken, strict=True):
+        np.testing.assert_array_equal(d.actions, acted)
+        assert d.values.shape == (2, 2, len(ACTION_NAMES)) and np.isfinite(d.values).all()
+        best = np.take_along_axis(d.values, d.actions[..., None], axis=-1)[..., 0]
+        np.testing.assert_array_equal(best, d.values.max(axis=-1))
+    # Values rank the actions: somewhere a first action is worth less than the best one.
+    assert any((d.values < d.values.max(axis=-1, keepdims=True)).any() for d in decisions)
 
 
 def test_the_planner_completes_merges_the_rule_driver_crashes_in() -> None:

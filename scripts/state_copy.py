@@ -1,0 +1,277 @@
+"""Can a policy that reads the vehicles' exact states copy the planner where a map reader cannot?
+
+The imitation reference (``train-policy --learner dagger``) copies the lookahead planner
+through the VelocityMap and fails about as often as the rule driver at the roundabout and
+the intersection. This script asks whether the map or the expert is what limits it: it runs
+the same DAgger scheme (the planner labels every acting AV's decision; the AV plays the
+planner's action with probability β, falling from 1 to 0 over the first half of the budget,
+else the network's; class-weighted cross-entropy on the aggregated labels) with a small MLP
+that reads, instead of the map, a vector of exact states (:func:`state_features`):
+
+- the AV itself: speed and lane speed, heading, world position, the share of the episode's
+  time gone, and, unless ``--no-route``, the lane-graph edges of its planned route
+  (``Scene.route``: what the planner knows of where the AV is going);
+- the ``--neighbours`` nearest other vehicles within ``--radius`` metres: position and
+  velocity in the AV's frame, relative heading, AV or human, crashed.
+
+With ``--target values`` the network learns, instead of the planner's choice, what the
+planner's lookahead scored each first action at against its choice (its
+:class:`~latentdrive.evaluate.planner.Plan` values, divided by ``VALUE_SCALE``; Huber
+regression), and drives by the best: a cost-sensitive copy (Ross and Bagnell's AggreVaTe,
+2014) that knows which of its mistakes cost a crash and which cost nothing.
+
+Neither the map nor this vector holds where each human driver will turn or its exact
+driving parameters, which the planner simulates. If this copy comes near the planner, the
+map's picture (its raster, noise, reach) is what the map copy lacks; if it fails as the map
+copy does, the planner's decisions rest on what neither reads.
+
+Training episodes come from the training seed range; the copy, the rule driver and (with
+``--compare RUN``) a map-reading run are then played on the first evaluation set, the
+episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwise
+(McNemar). Usage::
+
+    python scripts/state_copy.py [--scenarios roundabout,intersection] [--decisions 20000]
+        [--seed 0] [--episodes 200] [--compare RUN] [--no-route] [--target labels|values]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from numpy.typing import NDArray
+from torch import nn
+from tqdm import tqdm
+
+from latentdrive.actions import N_ACTIONS
+from latentdrive.evaluate.planner import Plan, planner_policy
+from latentdrive.evaluate.policies import reference_policy
+from latentdrive.evaluate.run import evaluate_policy
+from latentdrive.evaluate.stats import paired_test, rate_ci
+from latentdrive.outcome import EpisodeOutcome
+from latentdrive.rl.imitate import (
+    ExpertLabels,
+    ImitationConfig,
+    dagger_policy,
+    expert_share,
+    label_weights,
+)
+from latentdrive.rl.policy import greedy_policy, load_policy_network
+from latentdrive.rollout import Policy, PolicyInput, rollout
+from latentdrive.scenarios import ScenarioSpec, get_spec
+from latentdrive.scene import Kind, RoadRaster, Scene
+from latentdrive.seeds import train_reset_seed
+from latentdrive.vec import make_vec
+
+#: Route bits kept: the preset layouts' lane graphs have at most 24 edges (roundabout).
+ROUTE_BITS = 32
+#: Per-neighbour features: x, y (m/50), vx, vy (m/s/20) in the AV's frame; cos, sin of the
+#: relative heading; is an AV; crashed; present.
+PER_NEIGHBOUR = 9
+#: Planning returns are divided by this before regression (a crash costs 20 of them).
+VALUE_SCALE = 10.0
+
+
+def state_features(scene: Scene, agent: int, duration: float, k: int, radius: float, route: bool) -> NDArray[np.float32]:
+    """Exact state of agent ``agent`` of ``scene`` and of its ``k`` nearest neighbours as one vector.
+
+    Positions are in metres, speeds in m/s, headings in radians (:mod:`latentdrive.scene`),
+    scaled to order one. Neighbour rows are sorted by distance; absent rows are zero.
+    Returns ``(ego + k * PER_NEIGHBOUR,)`` float32, where ego is ``7 + ROUTE_BITS`` with the
+    route and 7 without.
+    """
+    i = int(scene.agents[agent])
+    h = float(scene.heading[i])
+    c, s = math.cos(h), math.sin(h)
+    ego = [scene.speed[i] / 20.0, scene.frenet_speed[i] / 20.0, c, s,
+           scene.position[i, 0] / 100.0, scene.position[i, 1] / 100.0, scene.time / duration]
+    if route:
+        assert scene.route is not None  # Scene fills it in
+        bits = int(scene.route[agent])
+        ego += [float((bits >> b) & 1) for b in range(ROUTE_BITS)]
+    others = np.flatnonzero(scene.mask & (np.arange(scene.n_vehicles) != i))
+    d = scene.position[others] - scene.position[i]
+    dist = np.hypot(d[:, 0], d[:, 1])
+    near = others[dist <= radius][np.argsort(dist[dist <= radius], kind="stable")][:k]
+    rows = np.zeros((k, PER_NEIGHBOUR))
+    if near.size:
+        dx, dy = (scene.position[near] - scene.position[i]).T
+        hv = scene.heading[near]
+        vx = scene.speed[near] * np.cos(hv) - scene.speed[i] * c
+        vy = scene.speed[near] * np.sin(hv) - scene.speed[i] * s
+        # Rotate world offsets and velocity differences into the AV's frame (x ahead, y to its right).
+        rows[: near.size] = np.stack([
+            (c * dx + s * dy) / 50.0, (-s * dx + c * dy) / 50.0,
+            (c * vx + s * vy) / 20.0, (-s * vx + c * vy) / 20.0,
+            np.cos(hv - h), np.sin(hv - h),
+            scene.kind[near] == Kind.AV, scene.crashed[near], np.ones(near.size),
+        ], axis=1)
+    return np.concatenate([np.asarray(ego, dtype=np.float64), rows.reshape(-1)]).astype(np.float32)
+
+
+def batch_features(inp: PolicyInput, specs: list[ScenarioSpec], k: int, radius: float, route: bool) -> NDArray[np.float32]:
+    """:func:`state_features` of every env and agent of ``inp``: ``(num_envs, n_av, F)``."""
+    return np.stack([np.stack([state_features(scene, a, spec.duration, k, radius, route) for a in range(scene.n_agents)])
+                     for scene, spec in zip(inp.scenes, specs, strict=True)])
+
+
+def mlp(n_in: int, hidden: int) -> nn.Module:
+    return nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                         nn.Linear(hidden, N_ACTIONS))
+
+
+class StateCopy:
+    """The MLP's greedy policy over :func:`batch_features`; keeps the latest step's features."""
+
+    def __init__(self, net: nn.Module, k: int, radius: float, route: bool) -> None:
+        self.net, self.k, self.radius, self.route = net, k, radius, route
+        self.latest: NDArray[np.float32] | None = None
+
+    def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
+        specs = inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios]
+        x = batch_features(inp, list(specs), self.k, self.radius, self.route)
+        self.latest = x
+        with torch.no_grad():
+            logits = self.net(torch.from_numpy(x.reshape(-1, x.shape[-1])))
+        return logits.argmax(-1).numpy().reshape(x.shape[:2]).astype(np.int64)
+
+
+def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
+    torch.manual_seed(args.seed)
+    rng = np.random.default_rng(args.seed)
+    imitation = ImitationConfig()
+    values = args.target == "values"
+    vec = make_vec(scenarios, args.envs, backend="fast")
+    probe = get_spec(scenarios[0])
+    n_in = len(state_features(_blank(probe), 0, probe.duration, args.neighbours, args.radius, not args.no_route))
+    net = mlp(n_in, args.hidden)
+    copy = StateCopy(net, args.neighbours, args.radius, not args.no_route)
+    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    xs = np.zeros((args.decisions, n_in), dtype=np.float32)
+    ys = np.zeros(args.decisions, dtype=np.int64)
+    vs = np.zeros((args.decisions, N_ACTIONS), dtype=np.float32)
+    plans: list[Plan] = []
+    n = updates = 0
+    labels = ExpertLabels()
+    behaviour = dagger_policy(planner_policy(record=plans.append), copy, rng, lambda: expert_share(imitation, n, args.decisions), labels)
+    acted: list[NDArray[np.bool_]] = []
+
+    def policy(inp: PolicyInput) -> NDArray[np.int64]:
+        acted.append(inp.active.copy())
+        return behaviour(inp)
+
+    loss = float("nan")
+    bar = tqdm(total=args.decisions, desc="decisions", unit="dec")
+    for _ in rollout(vec, policy, seed=train_reset_seed(args.seed, 0)):
+        active = acted.pop()
+        assert copy.latest is not None and labels.latest is not None
+        new_x, new_y = copy.latest[active], labels.latest[active]
+        # Advantages under the planner's own scores: 0 for its choice, below for the others.
+        worth = plans.pop().values[active]
+        new_v = (worth - worth.max(axis=-1, keepdims=True)) / VALUE_SCALE
+        take = min(len(new_y), args.decisions - n)
+        xs[n: n + take], ys[n: n + take], vs[n: n + take] = new_x[:take], new_y[:take], new_v[:take]
+        n += take
+        bar.update(take)
+        due = int(n * args.updates_per_decision) - updates
+        if n >= args.learning_starts and due > 0:
+            w = torch.from_numpy(label_weights(ys[:n]))
+            for _ in range(due):
+                idx = rng.integers(0, n, size=args.batch_size)
+                out = net(torch.from_numpy(xs[idx]))
+                if values:
+                    loss_t = F.smooth_l1_loss(out, torch.from_numpy(vs[idx]))
+                else:
+                    loss_t = F.cross_entropy(out, torch.from_numpy(ys[idx]), weight=w)
+                opt.zero_grad(set_to_none=True)
+                loss_t.backward()
+                nn.utils.clip_grad_norm_(net.parameters(), 10.0)
+                opt.step()
+                loss = float(loss_t.detach())
+            updates += due
+            bar.set_postfix(loss=f"{loss:.3f}", beta=f"{expert_share(imitation, n, args.decisions):.2f}")
+        if n >= args.decisions:
+            break
+    bar.close()
+    vec.close()
+    with torch.no_grad():
+        acc = float((net(torch.from_numpy(xs)).argmax(-1).numpy() == ys).mean())
+    print(f"trained on {n} labelled decisions, {updates} updates; last batch loss {loss:.3f}; "
+          f"agreement with the labels it trained on {acc:.3f}")
+    return copy
+
+
+def _blank(spec: ScenarioSpec) -> Scene:
+    """A one-vehicle Scene, to size the feature vector."""
+    z = np.zeros(1)
+    return Scene(position=np.zeros((1, 2)), heading=z, speed=z, frenet_speed=z, length=z + 5, width=z + 2,
+                 kind=np.ones(1, dtype=np.int8), mask=np.ones(1, dtype=bool), crashed=np.zeros(1, dtype=bool),
+                 agents=np.zeros(1, dtype=np.int64),
+                 road=RoadRaster(mask=np.zeros((1, 1), dtype=np.uint8), origin=np.zeros(2), resolution=1.0))
+
+
+def _failed(outcomes: list[EpisodeOutcome]) -> dict[str, NDArray[np.bool_]]:
+    """Failure flags per scenario, in (env slot, episode) order so runs pair up."""
+    out: dict[str, list[tuple[int, int, bool]]] = {}
+    for o in outcomes:
+        out.setdefault(o.scenario, []).append((o.env_index, o.episode_index, not o.success))
+    return {k: np.array([f for *_, f in sorted(v)]) for k, v in out.items()}
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenarios", default="roundabout,intersection")
+    ap.add_argument("--decisions", type=int, default=20_000, help="labelled decisions (default 20000)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--envs", type=int, default=16)
+    ap.add_argument("--neighbours", type=int, default=12)
+    ap.add_argument("--radius", type=float, default=80.0, help="metres")
+    ap.add_argument("--no-route", action="store_true", help="leave the AV's planned route out of its features")
+    ap.add_argument("--target", choices=["labels", "values"], default="labels",
+                    help="labels: the planner's action (class-weighted cross-entropy); values: the planner's "
+                         "score of each first action against its choice (Huber regression; the policy takes the best)")
+    ap.add_argument("--hidden", type=int, default=256)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--batch-size", type=int, default=64)
+    ap.add_argument("--updates-per-decision", type=float, default=0.5)
+    ap.add_argument("--learning-starts", type=int, default=1000)
+    ap.add_argument("--episodes", type=int, default=200, help="test episodes per scenario (default 200)")
+    ap.add_argument("--compare", metavar="RUN", help="a map-reading policy run to pair against")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    scenarios = args.scenarios.split(",")
+    t0 = time.perf_counter()
+    copy = train(args, scenarios)
+    print(f"training took {time.perf_counter() - t0:.0f} s")
+
+    def copy_policy() -> Policy:
+        return copy
+
+    policies: dict[str, object] = {"state copy": copy_policy, "rule": reference_policy("rule")}
+    overrides: dict[str, dict[str, object]] = {}
+    if args.compare:
+        net, cfg = load_policy_network(args.compare)
+        policies["map run"] = greedy_policy(net, torch.device("cpu"))
+        overrides["map run"] = {"observation": cfg.observation.model_dump(), "reward": cfg.reward.model_dump()}
+    failed = {name: _failed(evaluate_policy(make, scenarios, args.episodes, envs=16, **overrides.get(name, {})))  # type: ignore[arg-type]
+              for name, make in policies.items()}
+    print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16); failure % [95% Wilson]")
+    for sc in [*scenarios, "both"]:
+        flags = {name: (np.concatenate(list(f.values())) if sc == "both" else f[sc]) for name, f in failed.items()}
+        cells = []
+        for name, f in flags.items():
+            r = rate_ci(int(f.sum()), f.size)
+            cells.append(f"{name} {100 * r.rate:.1f} [{100 * r.lo:.1f}, {100 * r.hi:.1f}]")
+        for other in [o for o in flags if o != "state copy"]:
+            t = paired_test(flags["state copy"], flags[other])
+            cells.append(f"vs {other} {100 * t.difference:+.1f} [{100 * t.lo:+.1f}, {100 * t.hi:+.1f}] p={t.p_value:.2g}")
+        print(f"{sc:<13}" + "; ".join(cells))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
