@@ -149,6 +149,7 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     probe = get_spec(scenarios[0])
     n_in = len(state_features(_blank(probe), 0, probe.duration, args.neighbours, args.radius, not args.no_route))
     net = mlp(n_in, args.hidden)
+    print(f"state copy: {n_in} inputs, {sum(p.numel() for p in net.parameters()):,} parameters")
     copy = StateCopy(net, args.neighbours, args.radius, not args.no_route)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     xs = np.zeros((args.decisions, n_in), dtype=np.float32)
@@ -200,8 +201,10 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     vec.close()
     with torch.no_grad():
         acc = float((net(torch.from_numpy(xs)).argmax(-1).numpy() == ys).mean())
+    ties = float(((vs[:n] == 0).sum(axis=1) > 1).mean())
     print(f"trained on {n} labelled decisions, {updates} updates; last batch loss {loss:.3f}; "
-          f"agreement with the labels it trained on {acc:.3f}")
+          f"agreement with the labels it trained on {acc:.3f}; decisions whose best value the planner's "
+          f"choice shares with another first action {ties:.3f}")
     return copy
 
 
@@ -242,6 +245,9 @@ def main() -> int:
     ap.add_argument("--episodes", type=int, default=200, help="test episodes per scenario (default 200)")
     ap.add_argument("--compare", metavar="RUN", help="a map-reading policy run to pair against")
     args = ap.parse_args()
+    for name in ("decisions", "envs", "neighbours", "hidden", "batch_size", "episodes"):
+        if getattr(args, name) < 1:
+            ap.error(f"--{name.replace('_', '-')} must be at least 1")
     torch.set_num_threads(1)
     scenarios = args.scenarios.split(",")
     t0 = time.perf_counter()
