@@ -6,7 +6,7 @@ the intersection. This script asks whether the map or the expert is what limits 
 the same DAgger scheme (the planner labels every acting AV's decision; the AV plays the
 planner's action with probability β, falling from 1 to 0 over the first half of the budget,
 else the network's; class-weighted cross-entropy on the aggregated labels) with a small MLP
-that reads, instead of the map, a vector of exact states (:func:`state_features`):
+that reads, instead of the map, a vector of exact states (:func:`latentdrive.observe.state.state_features`):
 
 - the AV itself: speed and lane speed, heading, world position, the share of the episode's
   time gone, and, unless ``--no-route``, the lane-graph edges of its planned route
@@ -37,7 +37,6 @@ episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwi
 from __future__ import annotations
 
 import argparse
-import math
 import time
 
 import numpy as np
@@ -52,6 +51,7 @@ from latentdrive.evaluate.planner import Plan, planner_policy
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.evaluate.stats import paired_test, rate_ci
+from latentdrive.observe.state import state_features, state_size
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.imitate import (
     ExpertLabels,
@@ -63,58 +63,15 @@ from latentdrive.rl.imitate import (
 from latentdrive.rl.policy import greedy_policy, load_policy_network
 from latentdrive.rollout import Policy, PolicyInput, rollout
 from latentdrive.scenarios import ScenarioSpec, get_spec
-from latentdrive.scene import Kind, RoadRaster, Scene
 from latentdrive.seeds import train_reset_seed
 from latentdrive.vec import make_vec
 
-#: Route bits kept: the preset layouts' lane graphs have at most 24 edges (roundabout).
-ROUTE_BITS = 32
-#: Per-neighbour features: x, y (m/50), vx, vy (m/s/20) in the AV's frame; cos, sin of the
-#: relative heading; is an AV; crashed; present.
-PER_NEIGHBOUR = 9
 #: Planning returns are divided by this before regression (a crash costs 20 of them).
 VALUE_SCALE = 10.0
 
 
-def state_features(scene: Scene, agent: int, duration: float, k: int, radius: float, route: bool) -> NDArray[np.float32]:
-    """Exact state of agent ``agent`` of ``scene`` and of its ``k`` nearest neighbours as one vector.
-
-    Positions are in metres, speeds in m/s, headings in radians (:mod:`latentdrive.scene`),
-    scaled to order one. Neighbour rows are sorted by distance; absent rows are zero.
-    Returns ``(ego + k * PER_NEIGHBOUR,)`` float32, where ego is ``7 + ROUTE_BITS`` with the
-    route and 7 without.
-    """
-    i = int(scene.agents[agent])
-    h = float(scene.heading[i])
-    c, s = math.cos(h), math.sin(h)
-    ego = [scene.speed[i] / 20.0, scene.frenet_speed[i] / 20.0, c, s,
-           scene.position[i, 0] / 100.0, scene.position[i, 1] / 100.0, scene.time / duration]
-    if route:
-        assert scene.route is not None  # Scene fills it in
-        bits = int(scene.route[agent])
-        ego += [float((bits >> b) & 1) for b in range(ROUTE_BITS)]
-    others = np.flatnonzero(scene.mask & (np.arange(scene.n_vehicles) != i))
-    d = scene.position[others] - scene.position[i]
-    dist = np.hypot(d[:, 0], d[:, 1])
-    near = others[dist <= radius][np.argsort(dist[dist <= radius], kind="stable")][:k]
-    rows = np.zeros((k, PER_NEIGHBOUR))
-    if near.size:
-        dx, dy = (scene.position[near] - scene.position[i]).T
-        hv = scene.heading[near]
-        vx = scene.speed[near] * np.cos(hv) - scene.speed[i] * c
-        vy = scene.speed[near] * np.sin(hv) - scene.speed[i] * s
-        # Rotate world offsets and velocity differences into the AV's frame (x ahead, y to its right).
-        rows[: near.size] = np.stack([
-            (c * dx + s * dy) / 50.0, (-s * dx + c * dy) / 50.0,
-            (c * vx + s * vy) / 20.0, (-s * vx + c * vy) / 20.0,
-            np.cos(hv - h), np.sin(hv - h),
-            scene.kind[near] == Kind.AV, scene.crashed[near], np.ones(near.size),
-        ], axis=1)
-    return np.concatenate([np.asarray(ego, dtype=np.float64), rows.reshape(-1)]).astype(np.float32)
-
-
 def batch_features(inp: PolicyInput, specs: list[ScenarioSpec], k: int, radius: float, route: bool) -> NDArray[np.float32]:
-    """:func:`state_features` of every env and agent of ``inp``: ``(num_envs, n_av, F)``."""
+    """:func:`~latentdrive.observe.state.state_features` of every env and agent of ``inp``: ``(num_envs, n_av, F)``."""
     return np.stack([np.stack([state_features(scene, a, spec.duration, k, radius, route) for a in range(scene.n_agents)])
                      for scene, spec in zip(inp.scenes, specs, strict=True)])
 
@@ -146,8 +103,7 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     imitation = ImitationConfig()
     values = args.target == "values"
     vec = make_vec(scenarios, args.envs, backend="fast")
-    probe = get_spec(scenarios[0])
-    n_in = len(state_features(_blank(probe), 0, probe.duration, args.neighbours, args.radius, not args.no_route))
+    n_in = state_size(args.neighbours, not args.no_route)
     net = mlp(n_in, args.hidden)
     print(f"state copy: {n_in} inputs, {sum(p.numel() for p in net.parameters()):,} parameters")
     copy = StateCopy(net, args.neighbours, args.radius, not args.no_route)
@@ -206,15 +162,6 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
           f"agreement with the labels it trained on {acc:.3f}; decisions whose best value the planner's "
           f"choice shares with another first action {ties:.3f}")
     return copy
-
-
-def _blank(spec: ScenarioSpec) -> Scene:
-    """A one-vehicle Scene, to size the feature vector."""
-    z = np.zeros(1)
-    return Scene(position=np.zeros((1, 2)), heading=z, speed=z, frenet_speed=z, length=z + 5, width=z + 2,
-                 kind=np.ones(1, dtype=np.int8), mask=np.ones(1, dtype=bool), crashed=np.zeros(1, dtype=bool),
-                 agents=np.zeros(1, dtype=np.int64),
-                 road=RoadRaster(mask=np.zeros((1, 1), dtype=np.uint8), origin=np.zeros(2), resolution=1.0))
 
 
 def _failed(outcomes: list[EpisodeOutcome]) -> dict[str, NDArray[np.bool_]]:

@@ -1,0 +1,53 @@
+"""The exact-state vector: literal geometry in the AV's frame, order, reach and the route bits."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from latentdrive.observe.state import PER_NEIGHBOUR, ROUTE_BITS, state_features, state_size
+from latentdrive.scene import Kind, RoadRaster, Scene
+
+ROAD = RoadRaster(mask=np.ones((4, 4), dtype=np.uint8), origin=np.zeros(2), resolution=1.0)
+
+
+def _scene(rows: list[tuple[float, float, float, float, int]], route: int = 0, time: float = 0.0) -> Scene:
+    """Vehicles as (x, y, heading, speed, kind); vehicle 0 is the one AV agent."""
+    a = np.array(rows, dtype=np.float64)
+    n = len(rows)
+    return Scene(position=a[:, :2], heading=a[:, 2], speed=a[:, 3], frenet_speed=a[:, 3] - 1.0,
+                 length=np.full(n, 5.0), width=np.full(n, 2.0), kind=a[:, 4].astype(np.int8),
+                 mask=np.ones(n, dtype=bool), crashed=np.array([False] + [True] * (n - 1)),
+                 agents=np.array([0]), road=ROAD, time=time, route=np.array([route], dtype=np.uint64))
+
+
+def test_a_car_ahead_and_to_the_right_of_an_av_heading_along_y() -> None:
+    # The AV heads along +y at 10 m/s; a human driver 20 m further along +y and 4 m towards
+    # -x (to the AV's right: the right of a car heading +y is -x) drives along +x at 5 m/s.
+    up = math.pi / 2
+    scene = _scene([(100.0, 50.0, up, 10.0, Kind.AV), (96.0, 70.0, 0.0, 5.0, Kind.HV)], time=3.0)
+    f = state_features(scene, 0, duration=15.0, k=2, radius=80.0, route=False)
+    assert f.shape == (state_size(2, route=False),) == (7 + 2 * PER_NEIGHBOUR,)
+    np.testing.assert_allclose(f[:7], [0.5, 0.45, 0.0, 1.0, 1.0, 0.5, 0.2], atol=1e-6)
+    # Ahead 20 m, right 4 m; its velocity (5, 0) less the AV's (0, 10) is (5, -10) in the
+    # world: 10 m/s closing along the AV's heading and 5 m/s towards its left (+x is the
+    # left of a car heading +y), heading a quarter turn to its left.
+    np.testing.assert_allclose(f[7:16], [20 / 50, 4 / 50, -10 / 20, -5 / 20, 0.0, -1.0, 0.0, 1.0, 1.0], atol=1e-6)
+    np.testing.assert_array_equal(f[16:], 0.0)  # the second row: nobody
+
+
+def test_neighbours_come_nearest_first_and_stop_at_the_radius() -> None:
+    scene = _scene([(0.0, 0.0, 0.0, 10.0, Kind.AV), (30.0, 0.0, 0.0, 10.0, Kind.HV),
+                    (-10.0, 0.0, 0.0, 10.0, Kind.AV), (0.0, 90.0, 0.0, 10.0, Kind.HV)])
+    f = state_features(scene, 0, 15.0, k=3, radius=80.0, route=False).reshape(-1)[7:].reshape(3, PER_NEIGHBOUR)
+    np.testing.assert_allclose(f[:, 0], [-10 / 50, 30 / 50, 0.0], atol=1e-6)
+    np.testing.assert_array_equal(f[:, 6], [1.0, 0.0, 0.0])  # the AV first, then the human; 90 m is out
+    np.testing.assert_array_equal(f[:, 8], [1.0, 1.0, 0.0])
+
+
+def test_the_route_bits_follow_the_ego_values() -> None:
+    scene = _scene([(0.0, 0.0, 0.0, 10.0, Kind.AV)], route=0b1001)
+    f = state_features(scene, 0, 15.0, k=1, radius=80.0, route=True)
+    assert f.shape == (state_size(1, route=True),) == (7 + ROUTE_BITS + PER_NEIGHBOUR,)
+    np.testing.assert_array_equal(np.flatnonzero(f[7:7 + ROUTE_BITS]), [0, 3])
