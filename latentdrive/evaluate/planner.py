@@ -44,7 +44,7 @@ from latentdrive.rollout import Policy, PolicyInput
 from latentdrive.scenarios import RewardConfig
 from latentdrive.sim.fast import FastBatch
 
-__all__ = ["Plan", "PlannerConfig", "candidate_sequences", "plan", "plan_actions", "planner_config", "planner_config_from_args",
+__all__ = ["Plan", "PlannerConfig", "candidate_sequences", "plan", "planner_config", "planner_config_from_args",
            "planner_policy"]
 
 
@@ -155,12 +155,6 @@ def plan(sim: FastBatch, env_ids: NDArray[np.int64], steps_left: NDArray[np.int6
             for a, starts in enumerate(first):
                 values[:, agent, a] = scores[:, starts].max(axis=1)
     return Plan(plans[:, :, 0], values)
-
-
-def plan_actions(sim: FastBatch, env_ids: NDArray[np.int64], steps_left: NDArray[np.int64], n_av: int,
-                 cfg: PlannerConfig, reward: RewardConfig) -> NDArray[np.int64]:
-    """The planner's actions ``(E, n_av)`` for environments ``env_ids`` of ``sim``."""
-    return plan(sim, env_ids, steps_left, n_av, cfg, reward).actions
 
 
 def planner_policy(cfg: PlannerConfig | None = None, reward: RewardConfig | None = None,
