@@ -32,6 +32,7 @@ episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwi
 
     python scripts/state_copy.py [--scenarios roundabout,intersection] [--decisions 20000]
         [--seed 0] [--episodes 200] [--compare RUN] [--no-route] [--target labels|values]
+        [--set planner.KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -47,7 +48,8 @@ from torch import nn
 from tqdm import tqdm
 
 from latentdrive.actions import N_ACTIONS
-from latentdrive.evaluate.planner import Plan, planner_policy
+from latentdrive.config import ConfigError
+from latentdrive.evaluate.planner import Plan, planner_config_from_args, planner_policy
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.evaluate.stats import paired_test, rate_ci
@@ -114,7 +116,7 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     plans: list[Plan] = []
     n = updates = 0
     labels = ExpertLabels()
-    behaviour = dagger_policy(planner_policy(record=plans.append), copy, rng, lambda: expert_share(imitation, n, args.decisions), labels)
+    behaviour = dagger_policy(planner_policy(planner_config_from_args(args.set), record=plans.append), copy, rng, lambda: expert_share(imitation, n, args.decisions), labels)
     acted: list[NDArray[np.bool_]] = []
 
     def policy(inp: PolicyInput) -> NDArray[np.int64]:
@@ -191,10 +193,16 @@ def main() -> int:
     ap.add_argument("--learning-starts", type=int, default=1000)
     ap.add_argument("--episodes", type=int, default=200, help="test episodes per scenario (default 200)")
     ap.add_argument("--compare", metavar="RUN", help="a map-reading policy run to pair against")
+    ap.add_argument("-s", "--set", action="append", default=[], metavar="planner.KEY=VALUE",
+                    help="the expert planner's settings, as for latentdrive evaluate (planner.depth=1)")
     args = ap.parse_args()
     for name in ("decisions", "envs", "neighbours", "hidden", "batch_size", "episodes"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be at least 1")
+    try:
+        planner_config_from_args(args.set)
+    except ConfigError as err:
+        ap.error(str(err))
     torch.set_num_threads(1)
     scenarios = args.scenarios.split(",")
     t0 = time.perf_counter()
