@@ -221,7 +221,8 @@ def main() -> int:
     failed = {name: _failed(evaluate_policy(make, scenarios, args.episodes, envs=16, **overrides.get(name, {})))  # type: ignore[arg-type]
               for name, make in policies.items()}
     print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16); failure % [95% Wilson]")
-    for sc in [*scenarios, "both"]:
+    # Outcomes name a spec file's scenario by its spec name, in the order played.
+    for sc in [*failed["state copy"], "both"]:
         flags = {name: (np.concatenate(list(f.values())) if sc == "both" else f[sc]) for name, f in failed.items()}
         cells = []
         for name, f in flags.items():
