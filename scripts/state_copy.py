@@ -20,6 +20,12 @@ planner's lookahead scored each first action at against its choice (its
 regression), and drives by the best: a cost-sensitive copy (Ross and Bagnell's AggreVaTe,
 2014) that knows which of its mistakes cost a crash and which cost nothing.
 
+With ``--privileged`` each neighbour also carries what the simulator's driver holds and
+nothing observable shows (:func:`hidden_features`: its target speed, whether it is yielding
+at a regulated junction, whether it is steering to another lane, its lane-change timer and
+its IDM exponent), read from the fast backend's own state: a diagnostic of whether that
+hidden state is what a copy lacks, never a policy's input.
+
 Neither the map nor this vector holds where each human driver will turn or its exact
 driving parameters, which the planner simulates. If this copy comes near the planner, the
 map's picture (its raster, noise, reach) is what the map copy lacks; if it fails as the map
@@ -32,7 +38,7 @@ episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwi
 
     python scripts/state_copy.py [--scenarios roundabout,intersection] [--decisions 20000]
         [--seed 0] [--episodes 200] [--compare RUN] [--no-route] [--target labels|values]
-        [--set planner.KEY=VALUE ...]
+        [--privileged] [--set planner.KEY=VALUE ...]
 """
 
 from __future__ import annotations
@@ -66,16 +72,48 @@ from latentdrive.rl.policy import greedy_policy, load_policy_network
 from latentdrive.rollout import Policy, PolicyInput, rollout
 from latentdrive.scenarios import ScenarioSpec, get_spec
 from latentdrive.seeds import train_reset_seed
+from latentdrive.sim.fast import FastBatch
+from latentdrive.sim.fast.state import DELTA, LANE, TARGET, TARGET_SPEED, TIMER, YIELDING
 from latentdrive.vec import make_vec
 
+#: Hidden driver values per neighbour (:func:`hidden_features`).
+PRIVILEGED = 5
 #: Planning returns are divided by this before regression (a crash costs 20 of them).
 VALUE_SCALE = 10.0
 
 
-def batch_features(inp: PolicyInput, specs: list[ScenarioSpec], k: int, radius: float, route: bool) -> NDArray[np.float32]:
-    """:func:`~latentdrive.observe.state.state_features` of every env and agent of ``inp``: ``(num_envs, n_av, F)``."""
-    return np.stack([np.stack([state_features(scene, a, spec.duration, k, radius, route) for a in range(scene.n_agents)])
-                     for scene, spec in zip(inp.scenes, specs, strict=True)])
+def hidden_features(inp: PolicyInput, env: int, agent: int, k: int, radius: float) -> NDArray[np.float32]:
+    """What the simulator's drivers carry and no observation shows, for the neighbours of
+    :func:`~latentdrive.observe.state.state_features` in its order: target speed / 20,
+    yielding at a regulated junction, steering to another lane, seconds since the last
+    lane-change decision / 5, IDM exponent δ − 4. ``(k * PRIVILEGED,)``. Reads the fast
+    backend's private state: a diagnostic, never a policy's input."""
+    sim = inp.simulator
+    assert isinstance(sim, FastBatch)
+    g, r = sim._where[env]
+    st = sim._groups[g].state
+    scene = inp.scenes[env]
+    i = int(scene.agents[agent])
+    others = np.flatnonzero(scene.mask & (np.arange(scene.n_vehicles) != i))
+    dist = np.hypot(*(scene.position[others] - scene.position[i]).T)
+    inside = dist <= radius
+    near = others[inside][np.argsort(dist[inside], kind="stable")][:k]
+    rows = np.zeros((k, PRIVILEGED))
+    rows[: near.size] = np.stack([
+        st.f[TARGET_SPEED, r, near] / 20.0, st.flag[YIELDING, r, near], st.i[TARGET, r, near] != st.i[LANE, r, near],
+        st.f[TIMER, r, near] / 5.0, st.f[DELTA, r, near] - 4.0], axis=1)
+    return rows.reshape(-1).astype(np.float32)
+
+
+def batch_features(inp: PolicyInput, specs: list[ScenarioSpec], k: int, radius: float, route: bool,
+                   privileged: bool = False) -> NDArray[np.float32]:
+    """:func:`~latentdrive.observe.state.state_features` of every env and agent of ``inp``
+    (and, with ``privileged``, :func:`hidden_features`): ``(num_envs, n_av, F)``."""
+    def one(e: int, a: int) -> NDArray[np.float32]:
+        x = state_features(inp.scenes[e], a, specs[e].duration, k, radius, route)
+        return np.concatenate([x, hidden_features(inp, e, a, k, radius)]) if privileged else x
+
+    return np.stack([np.stack([one(e, a) for a in range(scene.n_agents)]) for e, scene in enumerate(inp.scenes)])
 
 
 def mlp(n_in: int, hidden: int) -> nn.Module:
@@ -86,13 +124,13 @@ def mlp(n_in: int, hidden: int) -> nn.Module:
 class StateCopy:
     """The MLP's greedy policy over :func:`batch_features`; keeps the latest step's features."""
 
-    def __init__(self, net: nn.Module, k: int, radius: float, route: bool) -> None:
-        self.net, self.k, self.radius, self.route = net, k, radius, route
+    def __init__(self, net: nn.Module, k: int, radius: float, route: bool, privileged: bool = False) -> None:
+        self.net, self.k, self.radius, self.route, self.privileged = net, k, radius, route, privileged
         self.latest: NDArray[np.float32] | None = None
 
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
         specs = inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios]
-        x = batch_features(inp, list(specs), self.k, self.radius, self.route)
+        x = batch_features(inp, list(specs), self.k, self.radius, self.route, self.privileged)
         self.latest = x
         with torch.no_grad():
             logits = self.net(torch.from_numpy(x.reshape(-1, x.shape[-1])))
@@ -105,10 +143,10 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     imitation = ImitationConfig()
     values = args.target == "values"
     vec = make_vec(scenarios, args.envs, backend="fast")
-    n_in = state_size(args.neighbours, not args.no_route)
+    n_in = state_size(args.neighbours, not args.no_route) + (args.neighbours * PRIVILEGED if args.privileged else 0)
     net = mlp(n_in, args.hidden)
     print(f"state copy: {n_in} inputs, {sum(p.numel() for p in net.parameters()):,} parameters")
-    copy = StateCopy(net, args.neighbours, args.radius, not args.no_route)
+    copy = StateCopy(net, args.neighbours, args.radius, not args.no_route, args.privileged)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
     xs = np.zeros((args.decisions, n_in), dtype=np.float32)
     ys = np.zeros(args.decisions, dtype=np.int64)
@@ -182,6 +220,8 @@ def main() -> int:
     ap.add_argument("--envs", type=int, default=16)
     ap.add_argument("--neighbours", type=int, default=12)
     ap.add_argument("--radius", type=float, default=80.0, help="metres")
+    ap.add_argument("--privileged", action="store_true",
+                    help="also feed each neighbour's hidden driver state (hidden_features): a diagnostic")
     ap.add_argument("--no-route", action="store_true", help="leave the AV's planned route out of its features")
     ap.add_argument("--target", choices=["labels", "values"], default="labels",
                     help="labels: the planner's action (class-weighted cross-entropy); values: the planner's "
@@ -222,6 +262,7 @@ def main() -> int:
               for name, make in policies.items()}
     print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16); failure % [95% Wilson]")
     # Outcomes name a spec file's scenario by its spec name, in the order played.
+    width = max(len(name) for name in [*failed["state copy"], "both"]) + 2
     for sc in [*failed["state copy"], "both"]:
         flags = {name: (np.concatenate(list(f.values())) if sc == "both" else f[sc]) for name, f in failed.items()}
         cells = []
@@ -231,7 +272,7 @@ def main() -> int:
         for other in [o for o in flags if o != "state copy"]:
             t = paired_test(flags["state copy"], flags[other])
             cells.append(f"vs {other} {100 * t.difference:+.1f} [{100 * t.lo:+.1f}, {100 * t.hi:+.1f}] p={t.p_value:.2g}")
-        print(f"{sc:<13}" + "; ".join(cells))
+        print(f"{sc:<{width}}" + "; ".join(cells))
     return 0
 
 
