@@ -141,7 +141,7 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     imitation = ImitationConfig()
-    values = args.target == "values"
+    values, weighted = args.target == "values", args.target == "weighted"
     vec = make_vec(scenarios, args.envs, backend="fast")
     n_in = state_size(args.neighbours, not args.no_route) + (args.neighbours * PRIVILEGED if args.privileged else 0)
     net = mlp(n_in, args.hidden)
@@ -182,6 +182,12 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
                 out = net(torch.from_numpy(xs[idx]))
                 if values:
                     loss_t = F.smooth_l1_loss(out, torch.from_numpy(vs[idx]))
+                elif weighted:
+                    # Each label weighs what its worst alternative would cost (in VALUE_SCALE
+                    # units), plus a floor so that ties still teach the planner's order.
+                    stake = 0.1 - torch.from_numpy(vs[idx]).min(dim=1).values
+                    per = F.cross_entropy(out, torch.from_numpy(ys[idx]), weight=w, reduction="none")
+                    loss_t = (per * stake).sum() / (w[torch.from_numpy(ys[idx])] * stake).sum()
                 else:
                     loss_t = F.cross_entropy(out, torch.from_numpy(ys[idx]), weight=w)
                 opt.zero_grad(set_to_none=True)
@@ -223,9 +229,10 @@ def main() -> int:
     ap.add_argument("--privileged", action="store_true",
                     help="also feed each neighbour's hidden driver state (hidden_features): a diagnostic")
     ap.add_argument("--no-route", action="store_true", help="leave the AV's planned route out of its features")
-    ap.add_argument("--target", choices=["labels", "values"], default="labels",
+    ap.add_argument("--target", choices=["labels", "values", "weighted"], default="labels",
                     help="labels: the planner's action (class-weighted cross-entropy); values: the planner's "
-                         "score of each first action against its choice (Huber regression; the policy takes the best)")
+                         "score of each first action against its choice (Huber regression; the policy takes the best); "
+                         "weighted: labels, each weighted by what its worst alternative would cost")
     ap.add_argument("--hidden", type=int, default=256)
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--batch-size", type=int, default=64)
