@@ -38,7 +38,12 @@ episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwi
 
     python scripts/state_copy.py [--scenarios roundabout,intersection] [--decisions 20000]
         [--seed 0] [--episodes 200] [--compare RUN] [--no-route] [--target labels|values]
-        [--privileged] [--set planner.KEY=VALUE ...]
+        [--privileged] [--audit] [--set planner.KEY=VALUE ...]
+
+With ``--audit`` the planner also labels and scores every state the copy acts in on the test
+episodes, so the copy's agreement where it drives stands beside that on its training
+decisions, with the share of its choices the planner scores below its own (costly) and by a
+crash's cost (severe).
 """
 
 from __future__ import annotations
@@ -55,12 +60,16 @@ from tqdm import tqdm
 
 from latentdrive.actions import N_ACTIONS
 from latentdrive.config import ConfigError
-from latentdrive.evaluate.planner import Plan, planner_config_from_args, planner_policy
+from latentdrive.evaluate.planner import (
+    Plan,
+    PlannerConfig,
+    planner_config_from_args,
+    planner_policy,
+)
 from latentdrive.evaluate.policies import reference_policy
+from latentdrive.evaluate.report import compare, format_compare, format_table, policy_report
 from latentdrive.evaluate.run import evaluate_policy
-from latentdrive.evaluate.stats import paired_test, rate_ci
-from latentdrive.observe.state import state_features, state_size
-from latentdrive.outcome import EpisodeOutcome
+from latentdrive.observe.state import nearest, state_features, state_size
 from latentdrive.rl.imitate import (
     ExpertLabels,
     ImitationConfig,
@@ -93,11 +102,7 @@ def hidden_features(inp: PolicyInput, env: int, agent: int, k: int, radius: floa
     g, r = sim._where[env]
     st = sim._groups[g].state
     scene = inp.scenes[env]
-    i = int(scene.agents[agent])
-    others = np.flatnonzero(scene.mask & (np.arange(scene.n_vehicles) != i))
-    dist = np.hypot(*(scene.position[others] - scene.position[i]).T)
-    inside = dist <= radius
-    near = others[inside][np.argsort(dist[inside], kind="stable")][:k]
+    near = nearest(scene, int(scene.agents[agent]), k, radius)
     rows = np.zeros((k, PRIVILEGED))
     rows[: near.size] = np.stack([
         st.f[TARGET_SPEED, r, near] / 20.0, st.flag[YIELDING, r, near], st.i[TARGET, r, near] != st.i[LANE, r, near],
@@ -135,6 +140,55 @@ class StateCopy:
         with torch.no_grad():
             logits = self.net(torch.from_numpy(x.reshape(-1, x.shape[-1])))
         return logits.argmax(-1).numpy().reshape(x.shape[:2]).astype(np.int64)
+
+
+#: A gap in planning return at least this large counts as severe: half the planner's crash
+#: penalty, what a crash a few steps into the horizon costs after discounting.
+SEVERE = 10.0
+
+
+def audit_line(where: str, chosen: NDArray[np.int64], expert: NDArray[np.int64],
+               values: NDArray[np.float64]) -> str:
+    """How a copy's ``chosen`` actions ``(N,)`` stand against the planner's choices ``expert``
+    ``(N,)`` and its values ``(N, N_ACTIONS)`` of each first action on the same states: exact
+    agreement, choices the planner scores below its best (costly), and those by at least
+    :data:`SEVERE` (severe), of all decisions and of those where some action costs that much."""
+    best = values.max(axis=1)
+    gap = best - values[np.arange(chosen.size), chosen]
+    critical = best - values.min(axis=1) >= SEVERE
+    severe = gap >= SEVERE
+    return (f"{where}: {chosen.size} decisions; agreement {float((chosen == expert).mean()):.3f}; "
+            f"choices the planner scores below its best {float((gap > 1e-9).mean()):.3f}; "
+            f"by at least {SEVERE:g} (a crash) {float(severe.mean()):.4f} of all, "
+            f"{float(severe[critical].mean()) if critical.any() else float('nan'):.3f} of the "
+            f"{float(critical.mean()):.3f} where some action costs that much")
+
+
+class Audit:
+    """Asks the planner about every state a policy acts in (``--audit``): what the copy's
+    agreement and costly choices are where it drives, beside those on its training decisions."""
+
+    def __init__(self) -> None:
+        self.chosen: list[NDArray[np.int64]] = []
+        self.expert: list[NDArray[np.int64]] = []
+        self.values: list[NDArray[np.float64]] = []
+
+    def wrap(self, policy: Policy, cfg: PlannerConfig) -> Policy:
+        plans: list[Plan] = []
+        expert = planner_policy(cfg, record=plans.append)
+
+        def audited(inp: PolicyInput) -> NDArray[np.int64]:
+            act = policy(inp)
+            expert(inp)
+            p = plans.pop()
+            self.chosen.append(act[inp.active])
+            self.expert.append(p.actions[inp.active])
+            self.values.append(p.values[inp.active])
+            return act
+        return audited
+
+    def summary(self, where: str) -> str:
+        return audit_line(where, np.concatenate(self.chosen), np.concatenate(self.expert), np.concatenate(self.values))
 
 
 def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
@@ -202,20 +256,15 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     bar.close()
     vec.close()
     with torch.no_grad():
-        acc = float((net(torch.from_numpy(xs)).argmax(-1).numpy() == ys).mean())
+        pred = net(torch.from_numpy(xs[:n])).argmax(-1).numpy()
+    acc = float((pred == ys[:n]).mean())
     ties = float(((vs[:n] == 0).sum(axis=1) > 1).mean())
     print(f"trained on {n} labelled decisions, {updates} updates; last batch loss {loss:.3f}; "
           f"agreement with the labels it trained on {acc:.3f}; decisions whose best value the planner's "
           f"choice shares with another first action {ties:.3f}")
+    if args.audit:
+        print(audit_line("on the decisions it trained on", pred, ys[:n], vs[:n].astype(np.float64) * VALUE_SCALE))
     return copy
-
-
-def _failed(outcomes: list[EpisodeOutcome]) -> dict[str, NDArray[np.bool_]]:
-    """Failure flags per scenario, in (env slot, episode) order so runs pair up."""
-    out: dict[str, list[tuple[int, int, bool]]] = {}
-    for o in outcomes:
-        out.setdefault(o.scenario, []).append((o.env_index, o.episode_index, not o.success))
-    return {k: np.array([f for *_, f in sorted(v)]) for k, v in out.items()}
 
 
 def main() -> int:
@@ -239,6 +288,9 @@ def main() -> int:
     ap.add_argument("--updates-per-decision", type=float, default=0.5)
     ap.add_argument("--learning-starts", type=int, default=1000)
     ap.add_argument("--episodes", type=int, default=200, help="test episodes per scenario (default 200)")
+    ap.add_argument("--audit", action="store_true",
+                    help="also ask the planner about every test state the copy acts in: its agreement and "
+                         "costly choices there, beside those on its training decisions (slower)")
     ap.add_argument("--compare", metavar="RUN", help="a map-reading policy run to pair against")
     ap.add_argument("-s", "--set", action="append", default=[], metavar="planner.KEY=VALUE",
                     help="the expert planner's settings, as for latentdrive evaluate (planner.depth=1)")
@@ -256,8 +308,12 @@ def main() -> int:
     copy = train(args, scenarios)
     print(f"training took {time.perf_counter() - t0:.0f} s")
 
+    audit = Audit()
+
     def copy_policy() -> Policy:
-        return copy
+        if not args.audit:
+            return copy
+        return audit.wrap(copy, planner_config_from_args(args.set))
 
     policies: dict[str, object] = {"state copy": copy_policy, "rule": reference_policy("rule")}
     overrides: dict[str, dict[str, object]] = {}
@@ -265,21 +321,14 @@ def main() -> int:
         net, cfg = load_policy_network(args.compare)
         policies["map run"] = greedy_policy(net, torch.device("cpu"))
         overrides["map run"] = {"observation": cfg.observation.model_dump(), "reward": cfg.reward.model_dump()}
-    failed = {name: _failed(evaluate_policy(make, scenarios, args.episodes, envs=16, **overrides.get(name, {})))  # type: ignore[arg-type]
-              for name, make in policies.items()}
-    print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16); failure % [95% Wilson]")
-    # Outcomes name a spec file's scenario by its spec name, in the order played.
-    width = max(len(name) for name in [*failed["state copy"], "both"]) + 2
-    for sc in [*failed["state copy"], "both"]:
-        flags = {name: (np.concatenate(list(f.values())) if sc == "both" else f[sc]) for name, f in failed.items()}
-        cells = []
-        for name, f in flags.items():
-            r = rate_ci(int(f.sum()), f.size)
-            cells.append(f"{name} {100 * r.rate:.1f} [{100 * r.lo:.1f}, {100 * r.hi:.1f}]")
-        for other in [o for o in flags if o != "state copy"]:
-            t = paired_test(flags["state copy"], flags[other])
-            cells.append(f"vs {other} {100 * t.difference:+.1f} [{100 * t.lo:+.1f}, {100 * t.hi:+.1f}] p={t.p_value:.2g}")
-        print(f"{sc:<{width}}" + "; ".join(cells))
+    outcomes = {name: evaluate_policy(make, scenarios, args.episodes, envs=16, **overrides.get(name, {}))  # type: ignore[arg-type]
+                for name, make in policies.items()}
+    print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16)")
+    print(format_table({name: policy_report(o) for name, o in outcomes.items()}))
+    for other in [name for name in outcomes if name != "state copy"]:
+        print(format_compare(compare(outcomes["state copy"], outcomes[other]), ("state copy", other)))
+    if args.audit:
+        print(audit.summary("on the test episodes it played"))
     return 0
 
 

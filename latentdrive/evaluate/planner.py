@@ -146,14 +146,15 @@ def plan(sim: FastBatch, env_ids: NDArray[np.int64], steps_left: NDArray[np.int6
     plans = np.full((n_env, n_av, cfg.depth), IDLE, dtype=np.int64)
     values = np.full((n_env, n_av, N_ACTIONS), -np.inf)
     first = [cands[:, 0] == a for a in range(N_ACTIONS)]
-    for _ in range(cfg.rounds):
+    for rnd in range(cfg.rounds):
         for agent in range(n_av):
             joint = np.repeat(plans[:, None], n_cand, axis=1)  # (E, C, A, D)
             joint[:, :, agent, :] = cands[None]
             scores = _scores(sim, env_ids, joint, steps_left, cfg, reward)
             plans[:, agent, :] = cands[np.argmax(scores, axis=1)]
-            for a, starts in enumerate(first):
-                values[:, agent, a] = scores[:, starts].max(axis=1)
+            if rnd == cfg.rounds - 1:  # earlier rounds' values are replaced
+                for a, starts in enumerate(first):
+                    values[:, agent, a] = scores[:, starts].max(axis=1)
     return Plan(plans[:, :, 0], values)
 
 

@@ -26,7 +26,7 @@ from numpy.typing import NDArray
 
 from latentdrive.scene import Kind, Scene
 
-__all__ = ["PER_NEIGHBOUR", "ROUTE_BITS", "state_features", "state_size"]
+__all__ = ["PER_NEIGHBOUR", "ROUTE_BITS", "nearest", "state_features", "state_size"]
 
 #: Route bits kept: the preset layouts' lane graphs have at most 24 edges (roundabout).
 ROUTE_BITS = 32
@@ -40,6 +40,15 @@ def state_size(k: int, route: bool) -> int:
     return _EGO + (ROUTE_BITS if route else 0) + k * PER_NEIGHBOUR
 
 
+def nearest(scene: Scene, vehicle: int, k: int, radius: float) -> NDArray[np.intp]:
+    """Indices of the at most ``k`` other vehicles of ``scene`` whose centres lie within
+    ``radius`` metres of ``vehicle``'s, nearest first (ties in index order)."""
+    others = np.flatnonzero(scene.mask & (np.arange(scene.n_vehicles) != vehicle))
+    dist = np.hypot(*(scene.position[others] - scene.position[vehicle]).T)
+    inside = dist <= radius
+    return others[inside][np.argsort(dist[inside], kind="stable")][:k]
+
+
 def state_features(scene: Scene, agent: int, duration: float, k: int, radius: float, route: bool) -> NDArray[np.float32]:
     """The exact-state vector ``(state_size(k, route),)`` float32 of agent ``agent`` of
     ``scene`` in an episode of ``duration`` seconds (module docstring)."""
@@ -51,12 +60,10 @@ def state_features(scene: Scene, agent: int, duration: float, k: int, radius: fl
     if route:
         assert scene.route is not None  # Scene fills it in
         bits = int(scene.route[agent])
+        if bits >> ROUTE_BITS:
+            raise ValueError(f"the route uses lane-graph edges beyond the {ROUTE_BITS} the state vector holds")
         ego += [float((bits >> b) & 1) for b in range(ROUTE_BITS)]
-    others = np.flatnonzero(scene.mask & (np.arange(scene.n_vehicles) != i))
-    d = scene.position[others] - scene.position[i]
-    dist = np.hypot(d[:, 0], d[:, 1])
-    inside = dist <= radius
-    near = others[inside][np.argsort(dist[inside], kind="stable")][:k]
+    near = nearest(scene, i, k, radius)
     rows = np.zeros((k, PER_NEIGHBOUR))
     if near.size:
         dx, dy = (scene.position[near] - scene.position[i]).T

@@ -5,8 +5,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
-from latentdrive.observe.state import PER_NEIGHBOUR, ROUTE_BITS, state_features, state_size
+from latentdrive.observe.state import PER_NEIGHBOUR, ROUTE_BITS, nearest, state_features, state_size
 from latentdrive.scene import Kind, RoadRaster, Scene
 
 ROAD = RoadRaster(mask=np.ones((4, 4), dtype=np.uint8), origin=np.zeros(2), resolution=1.0)
@@ -44,6 +45,8 @@ def test_neighbours_come_nearest_first_and_stop_at_the_radius() -> None:
     np.testing.assert_allclose(f[:, 0], [-10 / 50, 30 / 50, 0.0], atol=1e-6)
     np.testing.assert_array_equal(f[:, 6], [1.0, 0.0, 0.0])  # the AV first, then the human; 90 m is out
     np.testing.assert_array_equal(f[:, 8], [1.0, 1.0, 0.0])
+    np.testing.assert_array_equal(nearest(scene, 0, k=3, radius=80.0), [2, 1])
+    np.testing.assert_array_equal(nearest(scene, 0, k=1, radius=80.0), [2])
 
 
 def test_the_route_bits_follow_the_ego_values() -> None:
@@ -51,3 +54,9 @@ def test_the_route_bits_follow_the_ego_values() -> None:
     f = state_features(scene, 0, 15.0, k=1, radius=80.0, route=True)
     assert f.shape == (state_size(1, route=True),) == (7 + ROUTE_BITS + PER_NEIGHBOUR,)
     np.testing.assert_array_equal(np.flatnonzero(f[7:7 + ROUTE_BITS]), [0, 3])
+
+
+def test_a_route_beyond_the_kept_bits_is_refused() -> None:
+    scene = _scene([(0.0, 0.0, 0.0, 10.0, Kind.AV)], route=1 << ROUTE_BITS)
+    with pytest.raises(ValueError, match="beyond the 32"):
+        state_features(scene, 0, 15.0, k=1, radius=80.0, route=True)
