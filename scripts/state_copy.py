@@ -40,16 +40,17 @@ episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwi
         [--seed 0] [--episodes 200] [--compare RUN] [--no-route] [--target labels|values]
         [--privileged] [--audit] [--set planner.KEY=VALUE ...]
 
-With ``--audit`` the planner also labels and scores every state the copy acts in on the test
-episodes, so the copy's agreement where it drives stands beside that on its training
-decisions, with the share of its choices the planner scores below its own (costly) and by a
-crash's cost (severe).
+With ``--audit`` the planner also labels and scores every state each policy acts in on the
+test episodes, so the copy's agreement where it drives stands beside that on its training
+decisions (and the rule driver's and the map run's beside both), with the share of choices
+the planner scores below its own (costly) and by a crash's cost (severe).
 """
 
 from __future__ import annotations
 
 import argparse
 import time
+from collections.abc import Callable
 
 import numpy as np
 import torch
@@ -165,27 +166,33 @@ def audit_line(where: str, chosen: NDArray[np.int64], expert: NDArray[np.int64],
 
 
 class Audit:
-    """Asks the planner about every state a policy acts in (``--audit``): what the copy's
-    agreement and costly choices are where it drives, beside those on its training decisions."""
+    """Asks the planner about every state a policy acts in (``--audit``): a policy's agreement
+    with it and its costly choices where the policy drives (for the copy, beside those on its
+    training decisions)."""
 
     def __init__(self) -> None:
         self.chosen: list[NDArray[np.int64]] = []
         self.expert: list[NDArray[np.int64]] = []
         self.values: list[NDArray[np.float64]] = []
 
-    def wrap(self, policy: Policy, cfg: PlannerConfig) -> Policy:
-        plans: list[Plan] = []
-        expert = planner_policy(cfg, record=plans.append)
+    def factory(self, make: Callable[[], Policy], cfg: PlannerConfig) -> Callable[[], Policy]:
+        """``make`` (a policy factory, as :func:`evaluate_policy` takes) whose policies this
+        audit watches; the planner with ``cfg`` judges every decision they take."""
+        def audited_factory() -> Policy:
+            policy = make()
+            plans: list[Plan] = []
+            expert = planner_policy(cfg, record=plans.append)
 
-        def audited(inp: PolicyInput) -> NDArray[np.int64]:
-            act = policy(inp)
-            expert(inp)
-            p = plans.pop()
-            self.chosen.append(act[inp.active])
-            self.expert.append(p.actions[inp.active])
-            self.values.append(p.values[inp.active])
-            return act
-        return audited
+            def audited(inp: PolicyInput) -> NDArray[np.int64]:
+                act = policy(inp)
+                expert(inp)
+                p = plans.pop()
+                self.chosen.append(act[inp.active])
+                self.expert.append(p.actions[inp.active])
+                self.values.append(p.values[inp.active])
+                return act
+            return audited
+        return audited_factory
 
     def summary(self, where: str) -> str:
         return audit_line(where, np.concatenate(self.chosen), np.concatenate(self.expert), np.concatenate(self.values))
@@ -289,8 +296,8 @@ def main() -> int:
     ap.add_argument("--learning-starts", type=int, default=1000)
     ap.add_argument("--episodes", type=int, default=200, help="test episodes per scenario (default 200)")
     ap.add_argument("--audit", action="store_true",
-                    help="also ask the planner about every test state the copy acts in: its agreement and "
-                         "costly choices there, beside those on its training decisions (slower)")
+                    help="also ask the planner about every test state each policy acts in: agreement and "
+                         "costly choices there, beside the copy's on its training decisions (slower)")
     ap.add_argument("--compare", metavar="RUN", help="a map-reading policy run to pair against")
     ap.add_argument("-s", "--set", action="append", default=[], metavar="planner.KEY=VALUE",
                     help="the expert planner's settings, as for latentdrive evaluate (planner.depth=1)")
@@ -308,27 +315,26 @@ def main() -> int:
     copy = train(args, scenarios)
     print(f"training took {time.perf_counter() - t0:.0f} s")
 
-    audit = Audit()
-
     def copy_policy() -> Policy:
-        if not args.audit:
-            return copy
-        return audit.wrap(copy, planner_config_from_args(args.set))
+        return copy
 
-    policies: dict[str, object] = {"state copy": copy_policy, "rule": reference_policy("rule")}
+    policies: dict[str, Callable[[], Policy]] = {"state copy": copy_policy, "rule": reference_policy("rule")}
     overrides: dict[str, dict[str, object]] = {}
     if args.compare:
         net, cfg = load_policy_network(args.compare)
         policies["map run"] = greedy_policy(net, torch.device("cpu"))
         overrides["map run"] = {"observation": cfg.observation.model_dump(), "reward": cfg.reward.model_dump()}
+    audits = {name: Audit() for name in policies} if args.audit else {}
+    for name, audit in audits.items():
+        policies[name] = audit.factory(policies[name], planner_config_from_args(args.set))
     outcomes = {name: evaluate_policy(make, scenarios, args.episodes, envs=16, **overrides.get(name, {}))  # type: ignore[arg-type]
                 for name, make in policies.items()}
     print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16)")
     print(format_table({name: policy_report(o) for name, o in outcomes.items()}))
     for other in [name for name in outcomes if name != "state copy"]:
         print(format_compare(compare(outcomes["state copy"], outcomes[other]), ("state copy", other)))
-    if args.audit:
-        print(audit.summary("on the test episodes it played"))
+    for name, audit in audits.items():
+        print(audit.summary(f"{name} on the test episodes"))
     return 0
 
 
