@@ -43,7 +43,7 @@ episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwi
 With ``--audit`` the planner also labels and scores every state each policy acts in on the
 test episodes, so the copy's agreement where it drives stands beside that on its training
 decisions (and the rule driver's and the map run's beside both), with the share of choices
-the planner scores below its own (costly) and by a crash's cost (severe).
+the planner scores below its own and by about a crash's cost (severe).
 """
 
 from __future__ import annotations
@@ -69,7 +69,7 @@ from latentdrive.evaluate.planner import (
 )
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.report import compare, format_compare, format_table, policy_report
-from latentdrive.evaluate.run import evaluate_policy
+from latentdrive.evaluate.run import evaluate_policy, quotas
 from latentdrive.observe.state import nearest, state_features, state_size
 from latentdrive.rl.imitate import (
     ExpertLabels,
@@ -143,59 +143,80 @@ class StateCopy:
         return logits.argmax(-1).numpy().reshape(x.shape[:2]).astype(np.int64)
 
 
-#: A gap in planning return at least this large counts as severe: half the planner's crash
-#: penalty, what a crash a few steps into the horizon costs after discounting.
-SEVERE = 10.0
-
-
 def audit_line(where: str, chosen: NDArray[np.int64], expert: NDArray[np.int64],
-               values: NDArray[np.float64]) -> str:
-    """How a copy's ``chosen`` actions ``(N,)`` stand against the planner's choices ``expert``
-    ``(N,)`` and its values ``(N, N_ACTIONS)`` of each first action on the same states: exact
-    agreement, choices the planner scores below its best (costly), and those by at least
-    :data:`SEVERE` (severe), of all decisions and of those where some action costs that much."""
+               values: NDArray[np.float64], severe_gap: float) -> str:
+    """How a policy's ``chosen`` actions ``(N,)`` stand against the planner's choices
+    ``expert`` ``(N,)`` and its values ``(N, N_ACTIONS)`` of each first action on the same
+    states: exact agreement, choices the planner scores below its best, and those by at least
+    ``severe_gap`` (about a crash's cost), of all decisions and of the critical ones, where
+    some action costs that much. Each value assumes the other AVs follow the planner's plans,
+    not what the judged policy made them do."""
     best = values.max(axis=1)
     gap = best - values[np.arange(chosen.size), chosen]
-    critical = best - values.min(axis=1) >= SEVERE
-    severe = gap >= SEVERE
+    critical = best - values.min(axis=1) >= severe_gap
+    severe = gap >= severe_gap
     return (f"{where}: {chosen.size} decisions; agreement {float((chosen == expert).mean()):.3f}; "
             f"choices the planner scores below its best {float((gap > 1e-9).mean()):.3f}; "
-            f"by at least {SEVERE:g} (a crash) {float(severe.mean()):.4f} of all, "
+            f"by at least {severe_gap:g} (about a crash's cost) {float(severe.mean()):.4f} of all, "
             f"{float(severe[critical].mean()) if critical.any() else float('nan'):.3f} of the "
             f"{float(critical.mean()):.3f} where some action costs that much")
 
 
+def severe_gap(cfg: PlannerConfig) -> float:
+    """Half the planner's crash penalty: what a crash a few steps into its horizon costs
+    after discounting, the gap in planning return that :func:`audit_line` calls severe."""
+    return -cfg.crash_penalty / 2
+
+
 class Audit:
     """Asks the planner about every state a policy acts in (``--audit``): a policy's agreement
-    with it and its costly choices where the policy drives (for the copy, beside those on its
+    with it and its choices the planner scores below its own where the policy drives (for the copy, beside those on its
     training decisions)."""
 
     def __init__(self) -> None:
         self.chosen: list[NDArray[np.int64]] = []
         self.expert: list[NDArray[np.int64]] = []
         self.values: list[NDArray[np.float64]] = []
+        self.cfg = PlannerConfig()
 
-    def factory(self, make: Callable[[], Policy], cfg: PlannerConfig) -> Callable[[], Policy]:
-        """``make`` (a policy factory, as :func:`evaluate_policy` takes) whose policies this
-        audit watches; the planner with ``cfg`` judges every decision they take."""
+    def factory(self, make: Callable[[], Policy], cfg: PlannerConfig, episodes: int) -> Callable[[], Policy]:
+        """``make`` (a policy factory, as :func:`evaluate_policy` takes, called once per
+        scenario) whose policies this audit watches; the planner with ``cfg`` judges every
+        decision they take in the ``episodes`` test episodes of each scenario. The evaluation
+        steps every environment until the last has played its quota, so an environment's
+        later episodes are played and not counted; their decisions are left out here too."""
+        self.cfg = cfg
+
         def audited_factory() -> Policy:
             policy = make()
             plans: list[Plan] = []
             expert = planner_policy(cfg, record=plans.append)
+            episode: NDArray[np.int64] | None = None
+            last_time = np.zeros(0)
 
             def audited(inp: PolicyInput) -> NDArray[np.int64]:
+                nonlocal episode, last_time
                 act = policy(inp)
                 expert(inp)
                 p = plans.pop()
-                self.chosen.append(act[inp.active])
-                self.expert.append(p.actions[inp.active])
-                self.values.append(p.values[inp.active])
+                now = np.asarray([scene.time for scene in inp.scenes])
+                if episode is None:
+                    episode, last_time = np.zeros(now.size, dtype=np.int64), now
+                else:
+                    # Time rises every step of an episode: where it does not, a new one began.
+                    episode += now <= last_time
+                    last_time = now
+                counted = inp.active & (episode < np.asarray(quotas(episodes, now.size)))[:, None]
+                self.chosen.append(act[counted])
+                self.expert.append(p.actions[counted])
+                self.values.append(p.values[counted])
                 return act
             return audited
         return audited_factory
 
     def summary(self, where: str) -> str:
-        return audit_line(where, np.concatenate(self.chosen), np.concatenate(self.expert), np.concatenate(self.values))
+        return audit_line(where, np.concatenate(self.chosen), np.concatenate(self.expert),
+                          np.concatenate(self.values), severe_gap(self.cfg))
 
 
 def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
@@ -270,7 +291,8 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
           f"agreement with the labels it trained on {acc:.3f}; decisions whose best value the planner's "
           f"choice shares with another first action {ties:.3f}")
     if args.audit:
-        print(audit_line("on the decisions it trained on", pred, ys[:n], vs[:n].astype(np.float64) * VALUE_SCALE))
+        print(audit_line("on the decisions it trained on", pred, ys[:n], vs[:n].astype(np.float64) * VALUE_SCALE,
+                         severe_gap(planner_config_from_args(args.set))))
     return copy
 
 
@@ -297,7 +319,7 @@ def main() -> int:
     ap.add_argument("--episodes", type=int, default=200, help="test episodes per scenario (default 200)")
     ap.add_argument("--audit", action="store_true",
                     help="also ask the planner about every test state each policy acts in: agreement and "
-                         "costly choices there, beside the copy's on its training decisions (slower)")
+                         "how often the planner scores its choice below its own there, beside the copy's on its training decisions (slower)")
     ap.add_argument("--compare", metavar="RUN", help="a map-reading policy run to pair against")
     ap.add_argument("-s", "--set", action="append", default=[], metavar="planner.KEY=VALUE",
                     help="the expert planner's settings, as for latentdrive evaluate (planner.depth=1)")
@@ -326,7 +348,7 @@ def main() -> int:
         overrides["map run"] = {"observation": cfg.observation.model_dump(), "reward": cfg.reward.model_dump()}
     audits = {name: Audit() for name in policies} if args.audit else {}
     for name, audit in audits.items():
-        policies[name] = audit.factory(policies[name], planner_config_from_args(args.set))
+        policies[name] = audit.factory(policies[name], planner_config_from_args(args.set), args.episodes)
     outcomes = {name: evaluate_policy(make, scenarios, args.episodes, envs=16, **overrides.get(name, {}))  # type: ignore[arg-type]
                 for name, make in policies.items()}
     print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16)")
