@@ -50,7 +50,7 @@ def test_the_dice_term_adds_to_the_reconstruction_error_and_has_gradients() -> N
     w = CellWeights(foreground=10.0, road=0.3, av_share=1 / 3)
     plain = reconstruction_error(logits, t, w, "bce")
     both = reconstruction_error(logits, t, w, "bce", dice=2.0)
-    assert float(both - plain) == pytest.approx(2.0 * float(vehicle_dice_loss(logits, t)), rel=1e-6)
+    assert float((both - plain).detach()) == pytest.approx(2.0 * float(vehicle_dice_loss(logits, t).detach()), rel=1e-6)
     both.backward()
     assert logits.grad is not None and float(logits.grad[0, 0, 0, 0, 1, 1]) < 0  # draw the car brighter
 
