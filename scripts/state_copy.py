@@ -38,7 +38,7 @@ episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwi
 
     python scripts/state_copy.py [--scenarios roundabout,intersection] [--decisions 20000]
         [--seed 0] [--episodes 200] [--compare RUN] [--no-route] [--target labels|values]
-        [--privileged] [--audit] [--set planner.KEY=VALUE ...]
+        [--privileged] [--audit] [--ensemble K] [--set planner.KEY=VALUE ...]
 
 With ``--audit`` the planner also labels and scores every state each policy acts in on the
 test episodes, so the copy's agreement where it drives stands beside that on its training
@@ -125,6 +125,22 @@ def batch_features(inp: PolicyInput, specs: list[ScenarioSpec], k: int, radius: 
 def mlp(n_in: int, hidden: int) -> nn.Module:
     return nn.Sequential(nn.Linear(n_in, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
                          nn.Linear(hidden, N_ACTIONS))
+
+
+class Ensemble(nn.Module):
+    """``k`` MLPs of different initial weights trained on the same batches (``--ensemble``);
+    the policy reads the mean of their outputs."""
+
+    def __init__(self, n_in: int, hidden: int, k: int) -> None:
+        super().__init__()
+        self.nets = nn.ModuleList(mlp(n_in, hidden) for _ in range(k))
+
+    def members(self, x: torch.Tensor) -> torch.Tensor:
+        """``(k, B, N_ACTIONS)`` each member's output for ``x`` ``(B, F)``."""
+        return torch.stack([net(x) for net in self.nets])
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.members(x).mean(0)
 
 
 class StateCopy:
@@ -219,14 +235,27 @@ class Audit:
                           np.concatenate(self.values), severe_gap(self.cfg))
 
 
+def target_loss(out: torch.Tensor, y: torch.Tensor, v: torch.Tensor, w: torch.Tensor, target: str) -> torch.Tensor:
+    """The loss of outputs ``out`` ``(B, N_ACTIONS)`` against labels ``y`` ``(B,)`` (class
+    weights ``w``) or the planner's scaled values ``v`` ``(B, N_ACTIONS)``, per ``--target``."""
+    if target == "values":
+        return F.smooth_l1_loss(out, v)
+    if target == "weighted":
+        # Each label weighs what its worst alternative would cost (in VALUE_SCALE units),
+        # plus a floor so that ties still teach the planner's order.
+        stake = 0.1 - v.min(dim=1).values
+        per = F.cross_entropy(out, y, weight=w, reduction="none")
+        return (per * stake).sum() / (w[y] * stake).sum()
+    return F.cross_entropy(out, y, weight=w)
+
+
 def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(args.seed)
     imitation = ImitationConfig()
-    values, weighted = args.target == "values", args.target == "weighted"
     vec = make_vec(scenarios, args.envs, backend="fast")
     n_in = state_size(args.neighbours, not args.no_route) + (args.neighbours * PRIVILEGED if args.privileged else 0)
-    net = mlp(n_in, args.hidden)
+    net = mlp(n_in, args.hidden) if args.ensemble == 1 else Ensemble(n_in, args.hidden, args.ensemble)
     print(f"state copy: {n_in} inputs, {sum(p.numel() for p in net.parameters()):,} parameters")
     copy = StateCopy(net, args.neighbours, args.radius, not args.no_route, args.privileged)
     opt = torch.optim.Adam(net.parameters(), lr=args.lr)
@@ -261,17 +290,10 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
             w = torch.from_numpy(label_weights(ys[:n]))
             for _ in range(due):
                 idx = rng.integers(0, n, size=args.batch_size)
-                out = net(torch.from_numpy(xs[idx]))
-                if values:
-                    loss_t = F.smooth_l1_loss(out, torch.from_numpy(vs[idx]))
-                elif weighted:
-                    # Each label weighs what its worst alternative would cost (in VALUE_SCALE
-                    # units), plus a floor so that ties still teach the planner's order.
-                    stake = 0.1 - torch.from_numpy(vs[idx]).min(dim=1).values
-                    per = F.cross_entropy(out, torch.from_numpy(ys[idx]), weight=w, reduction="none")
-                    loss_t = (per * stake).sum() / (w[torch.from_numpy(ys[idx])] * stake).sum()
-                else:
-                    loss_t = F.cross_entropy(out, torch.from_numpy(ys[idx]), weight=w)
+                x, y, v = torch.from_numpy(xs[idx]), torch.from_numpy(ys[idx]), torch.from_numpy(vs[idx])
+                # An ensemble's members each learn the targets; their mean is only the policy.
+                outs = net.members(x) if isinstance(net, Ensemble) else net(x)[None]
+                loss_t = torch.stack([target_loss(out, y, v, w, args.target) for out in outs]).mean()
                 opt.zero_grad(set_to_none=True)
                 loss_t.backward()
                 nn.utils.clip_grad_norm_(net.parameters(), 10.0)
@@ -312,6 +334,9 @@ def main() -> int:
                          "score of each first action against its choice (Huber regression; the policy takes the best); "
                          "weighted: labels, each weighted by what its worst alternative would cost")
     ap.add_argument("--hidden", type=int, default=256)
+    ap.add_argument("--ensemble", type=int, default=1,
+                    help="MLPs of different initial weights, each trained on the labels; the policy reads "
+                         "their mean output (default 1)")
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--updates-per-decision", type=float, default=0.5)
@@ -324,7 +349,7 @@ def main() -> int:
     ap.add_argument("-s", "--set", action="append", default=[], metavar="planner.KEY=VALUE",
                     help="the expert planner's settings, as for latentdrive evaluate (planner.depth=1)")
     args = ap.parse_args()
-    for name in ("decisions", "envs", "neighbours", "hidden", "batch_size", "episodes"):
+    for name in ("decisions", "envs", "neighbours", "hidden", "ensemble", "batch_size", "episodes"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be at least 1")
     try:
