@@ -38,7 +38,7 @@ episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwi
 
     python scripts/state_copy.py [--scenarios roundabout,intersection] [--decisions 20000]
         [--seed 0] [--episodes 200] [--compare RUN] [--no-route] [--target labels|values]
-        [--privileged] [--audit] [--ensemble K] [--set planner.KEY=VALUE ...]
+        [--privileged] [--audit] [--holdout F] [--ensemble K] [--set planner.KEY=VALUE ...]
 
 With ``--audit`` the planner also labels and scores every state each policy acts in on the
 test episodes, so the copy's agreement where it drives stands beside that on its training
@@ -263,6 +263,11 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     ys = np.zeros(args.decisions, dtype=np.int64)
     vs = np.zeros((args.decisions, N_ACTIONS), dtype=np.float32)
     plans: list[Plan] = []
+    # --holdout: every decision whose index falls on the held-out stride is labelled and kept
+    # but never trained on, so the copy can be judged on unseen states of its own distribution.
+    held = np.zeros(args.decisions, dtype=bool)
+    if args.holdout:
+        held[:: round(1 / args.holdout)] = True
     n = updates = 0
     labels = ExpertLabels()
     behaviour = dagger_policy(planner_policy(planner_config_from_args(args.set), record=plans.append), copy, rng, lambda: expert_share(imitation, n, args.decisions), labels)
@@ -288,8 +293,9 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
         due = int(n * args.updates_per_decision) - updates
         if n >= args.learning_starts and due > 0:
             w = torch.from_numpy(label_weights(ys[:n]))
+            pool = np.flatnonzero(~held[:n]) if args.holdout else None
             for _ in range(due):
-                idx = rng.integers(0, n, size=args.batch_size)
+                idx = rng.integers(0, n, size=args.batch_size) if pool is None else rng.choice(pool, size=args.batch_size)
                 x, y, v = torch.from_numpy(xs[idx]), torch.from_numpy(ys[idx]), torch.from_numpy(vs[idx])
                 # An ensemble's members each learn the targets; their mean is only the policy.
                 outs = net.members(x) if isinstance(net, Ensemble) else net(x)[None]
@@ -306,15 +312,20 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     bar.close()
     vec.close()
     with torch.no_grad():
-        pred = net(torch.from_numpy(xs[:n])).argmax(-1).numpy()
-    acc = float((pred == ys[:n]).mean())
-    ties = float(((vs[:n] == 0).sum(axis=1) > 1).mean())
-    print(f"trained on {n} labelled decisions, {updates} updates; last batch loss {loss:.3f}; "
+        pred_all = net(torch.from_numpy(xs[:n])).argmax(-1).numpy()
+    fit = ~held[:n]
+    pred, ys_fit, vs_fit = pred_all[fit], ys[:n][fit], vs[:n][fit]
+    acc = float((pred == ys_fit).mean())
+    ties = float(((vs_fit == 0).sum(axis=1) > 1).mean())
+    print(f"trained on {int(fit.sum())} labelled decisions, {updates} updates; last batch loss {loss:.3f}; "
           f"agreement with the labels it trained on {acc:.3f}; decisions whose best value the planner's "
           f"choice shares with another first action {ties:.3f}")
     if args.audit:
-        print(audit_line("on the decisions it trained on", pred, ys[:n], vs[:n].astype(np.float64) * VALUE_SCALE,
-                         severe_gap(planner_config_from_args(args.set))))
+        gap = severe_gap(planner_config_from_args(args.set))
+        print(audit_line("on the decisions it trained on", pred, ys_fit, vs_fit.astype(np.float64) * VALUE_SCALE, gap))
+        if args.holdout:
+            print(audit_line("on the decisions held out of training", pred_all[~fit], ys[:n][~fit],
+                             vs[:n][~fit].astype(np.float64) * VALUE_SCALE, gap))
     return copy
 
 
@@ -334,6 +345,9 @@ def main() -> int:
                          "score of each first action against its choice (Huber regression; the policy takes the best); "
                          "weighted: labels, each weighted by what its worst alternative would cost")
     ap.add_argument("--hidden", type=int, default=256)
+    ap.add_argument("--holdout", type=float, default=0.0,
+                    help="share of the labelled decisions (every 1/F-th) kept out of training and judged "
+                         "with --audit: unseen states of the copy's own distribution (default 0)")
     ap.add_argument("--ensemble", type=int, default=1,
                     help="MLPs of different initial weights, each trained on the labels; the policy reads "
                          "their mean output (default 1)")
@@ -352,6 +366,8 @@ def main() -> int:
     for name in ("decisions", "envs", "neighbours", "hidden", "ensemble", "batch_size", "episodes"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be at least 1")
+    if not 0.0 <= args.holdout <= 0.5:
+        ap.error("--holdout must lie in [0, 0.5]")
     try:
         planner_config_from_args(args.set)
     except ConfigError as err:
