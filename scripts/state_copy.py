@@ -258,7 +258,8 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     net = mlp(n_in, args.hidden) if args.ensemble == 1 else Ensemble(n_in, args.hidden, args.ensemble)
     print(f"state copy: {n_in} inputs, {sum(p.numel() for p in net.parameters()):,} parameters")
     copy = StateCopy(net, args.neighbours, args.radius, not args.no_route, args.privileged)
-    opt = torch.optim.Adam(net.parameters(), lr=args.lr)
+    opt = (torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=args.weight_decay) if args.weight_decay
+           else torch.optim.Adam(net.parameters(), lr=args.lr))
     xs = np.zeros((args.decisions, n_in), dtype=np.float32)
     ys = np.zeros(args.decisions, dtype=np.int64)
     vs = np.zeros((args.decisions, N_ACTIONS), dtype=np.float32)
@@ -352,6 +353,8 @@ def main() -> int:
                     help="MLPs of different initial weights, each trained on the labels; the policy reads "
                          "their mean output (default 1)")
     ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--weight-decay", type=float, default=0.0,
+                    help="decoupled weight decay (AdamW) when above 0; default 0 (Adam)")
     ap.add_argument("--batch-size", type=int, default=64)
     ap.add_argument("--updates-per-decision", type=float, default=0.5)
     ap.add_argument("--learning-starts", type=int, default=1000)
@@ -366,6 +369,8 @@ def main() -> int:
     for name in ("decisions", "envs", "neighbours", "hidden", "ensemble", "batch_size", "episodes"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be at least 1")
+    if args.weight_decay < 0:
+        ap.error("--weight-decay must be at least 0")
     if not 0.0 <= args.holdout <= 0.5:
         ap.error("--holdout must lie in [0, 0.5]")
     try:
