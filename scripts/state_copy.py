@@ -185,44 +185,43 @@ def severe_gap(cfg: PlannerConfig) -> float:
 
 
 class Audit:
-    """Asks the planner about every state a policy acts in (``--audit``): a policy's agreement
-    with it and its choices the planner scores below its own where the policy drives (for the copy, beside those on its
-    training decisions)."""
+    """Asks the planner (settings ``cfg``) about every decision a policy takes on its
+    ``episodes`` test episodes per scenario (``--audit``): agreement with it, and the choices
+    it scores below its own, where the policy drives."""
 
-    def __init__(self) -> None:
+    def __init__(self, cfg: PlannerConfig, episodes: int) -> None:
+        self.cfg, self.episodes = cfg, episodes
         self.chosen: list[NDArray[np.int64]] = []
         self.expert: list[NDArray[np.int64]] = []
         self.values: list[NDArray[np.float64]] = []
-        self.cfg = PlannerConfig()
 
-    def factory(self, make: Callable[[], Policy], cfg: PlannerConfig, episodes: int) -> Callable[[], Policy]:
+    def factory(self, make: Callable[[], Policy]) -> Callable[[], Policy]:
         """``make`` (a policy factory, as :func:`evaluate_policy` takes, called once per
-        scenario) whose policies this audit watches; the planner with ``cfg`` judges every
-        decision they take in the ``episodes`` test episodes of each scenario. The evaluation
-        steps every environment until the last has played its quota, so an environment's
-        later episodes are played and not counted; their decisions are left out here too."""
-        self.cfg = cfg
-
+        scenario) with every decision of its policies judged. The evaluation steps every
+        environment until the last has played its quota and drops the outcomes beyond it;
+        the decisions of those extra episodes are dropped here too."""
         def audited_factory() -> Policy:
             policy = make()
             plans: list[Plan] = []
-            expert = planner_policy(cfg, record=plans.append)
-            episode: NDArray[np.int64] | None = None
+            expert = planner_policy(self.cfg, record=plans.append)
+            # Per environment: episodes begun, episodes counted, last step's time (sized on
+            # the first step).
+            episode = quota = np.zeros(0, dtype=np.int64)
             last_time = np.zeros(0)
 
             def audited(inp: PolicyInput) -> NDArray[np.int64]:
-                nonlocal episode, last_time
+                nonlocal episode, quota, last_time
                 act = policy(inp)
                 expert(inp)
                 p = plans.pop()
                 now = np.asarray([scene.time for scene in inp.scenes])
-                if episode is None:
-                    episode, last_time = np.zeros(now.size, dtype=np.int64), now
+                if episode.size == 0:
+                    episode, quota = np.zeros(now.size, dtype=np.int64), np.asarray(quotas(self.episodes, now.size))
                 else:
                     # Time rises every step of an episode: where it does not, a new one began.
-                    episode += now <= last_time
-                    last_time = now
-                counted = inp.active & (episode < np.asarray(quotas(episodes, now.size)))[:, None]
+                    episode = episode + (now <= last_time)
+                last_time = now
+                counted = inp.active & (episode < quota)[:, None]
                 self.chosen.append(act[counted])
                 self.expert.append(p.actions[counted])
                 self.values.append(p.values[counted])
@@ -392,9 +391,9 @@ def main() -> int:
         net, cfg = load_policy_network(args.compare)
         policies["map run"] = greedy_policy(net, torch.device("cpu"))
         overrides["map run"] = {"observation": cfg.observation.model_dump(), "reward": cfg.reward.model_dump()}
-    audits = {name: Audit() for name in policies} if args.audit else {}
+    audits = {name: Audit(planner_config_from_args(args.set), args.episodes) for name in policies} if args.audit else {}
     for name, audit in audits.items():
-        policies[name] = audit.factory(policies[name], planner_config_from_args(args.set), args.episodes)
+        policies[name] = audit.factory(policies[name])
     outcomes = {name: evaluate_policy(make, scenarios, args.episodes, envs=16, **overrides.get(name, {}))  # type: ignore[arg-type]
                 for name, make in policies.items()}
     print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16)")
