@@ -115,6 +115,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         raise LatentDriveError("--steps must be at least 1")
     if sum(map(bool, (args.train, args.plan, args.bottleneck))) > 1:
         raise LatentDriveError("--train, --plan and --bottleneck measure different things: give one")
+    if args.processes > 1 and not args.train:
+        raise LatentDriveError("--processes measures training runs sharing the machine: it needs --train")
     if args.batch_size < 1:
         raise LatentDriveError(f"--batch-size must be at least 1, got {args.batch_size}")
     _check_output("--json", args.json)
@@ -136,8 +138,8 @@ def _cmd_bench(args: argparse.Namespace) -> int:
             raise LatentDriveError(str(exc)) from None
         model_cfg = validate(BottleneckConfig, fields, prefix="model.")
         if precision == "auto" and "bf16" not in precisions:
-            _say("bf16 not measured: precision auto is fp32 here (no AMX-BF16, or its kernels unsound), "
-                 "where bf16 is slower "
+            _say("bf16 not measured: precision auto is fp32 here (CUDA, no AMX-BF16, or its kernels unsound), "
+                 "where bf16 is slower or no faster "
                  "(--set precision=bf16 measures it anyway)")
         _say(f"benchmarking BNN training in {' and '.join(precisions)} ({args.steps} steps of {args.batch_size}) ...")
         brows = bench_bottleneck(model_cfg, batch_size=args.batch_size, steps=args.steps, threads=threads,
@@ -152,11 +154,24 @@ def _cmd_bench(args: argparse.Namespace) -> int:
         overrides = parse_override_args(args.overrides)
         modes = args.modes.split(",") if args.modes else ["raw", "latent", "end-to-end"]
         _say(f"benchmarking training in {len(modes)} mode(s) on {', '.join(names)} ...")
-        trows = bench_training(modes, names, transitions=args.steps, envs=args.batch_size, bnn=args.bnn or None,
-                               overrides=overrides, progress=_say, repeat=args.repeat)
+        if args.processes > 1:
+            from latentdrive.rl.bench_shared import bench_training_shared, format_shared
+
+            if args.repeat > 1:
+                raise LatentDriveError("--processes and --repeat: give one (each process runs the measurement once)")
+            trows, shared = bench_training_shared(args.processes, modes, names, transitions=args.steps,
+                                                  envs=args.batch_size, bnn=args.bnn or None, overrides=overrides,
+                                                  progress=_say)
+        else:
+            trows = bench_training(modes, names, transitions=args.steps, envs=args.batch_size, bnn=args.bnn or None,
+                                   overrides=overrides, progress=_say, repeat=args.repeat)
+            shared = []
         print(format_train_bench(trows, args.batch_size, int(overrides.get("threads", 1))))
+        if shared:
+            print(format_shared(shared))
         if args.json:
-            _write_json(args.json, [r.as_dict() for r in trows])
+            alone = [r.as_dict() for r in trows]
+            _write_json(args.json, {"alone": alone, "at_once": [r.as_dict() for r in shared]} if shared else alone)
         return 0
     if args.plan:
         from latentdrive.evaluate.plan_bench import bench_planner, format_plan_bench
@@ -336,6 +351,10 @@ def build_parser() -> argparse.ArgumentParser:
     s.add_argument("--repeat", type=positive_int, default=1,
                    help="with --train or --backend fast: run each measurement this many times and report the "
                    "median run and the range (a shared machine's speed varies from run to run)")
+    s.add_argument("--processes", type=positive_int, default=1,
+                   help="with --train: also run the measurement in this many processes at once, as that many "
+                   "study workers would share this machine (and its GPU), and report each one's agent-transitions/s "
+                   "against the measurement alone")
     _add_set(s, "observation override, repeatable (--set height=64 --set resolution=1.0); with --train, train-policy overrides")
     s.set_defaults(func=_cmd_bench)
 

@@ -3,10 +3,12 @@ determinism for a run.
 
 One ``precision`` setting (``auto|fp32|bf16``) serves every network (the BNN, the frozen
 encoder, the VFAN learner): :func:`resolve_precision` turns it into a dtype for a device,
-and :func:`autocast` runs a block in it. ``auto`` picks bf16 autocast on CUDA and on CPUs
-with AMX-BF16 matrix units, where it is faster, and fp32 elsewhere: where bf16 is emulated
-it is slower, and on CPUs with AVX512-BF16 but no AMX oneDNN's kernels return non-finite
-weight gradients for strided 3D convolutions (:func:`cpu_bf16_gradients_sound`).
+and :func:`autocast` runs a block in it. ``auto`` picks bf16 autocast on CPUs with AMX-BF16
+matrix units, where it is faster, and fp32 elsewhere: where bf16 is emulated it is slower;
+on CPUs with AVX512-BF16 but no AMX oneDNN's kernels return non-finite weight gradients
+for strided 3D convolutions (:func:`cpu_bf16_gradients_sound`); and on CUDA these small
+networks and batches are bound by the host's kernel launches, not by arithmetic, so bf16's
+extra casts made them no faster (measured on an H100: docs/performance.md, "On one GPU").
 """
 
 from __future__ import annotations
@@ -100,8 +102,8 @@ def onednn(enabled: bool) -> AbstractContextManager[object]:
 def resolve_precision(spec: str, device: torch.device) -> torch.dtype:
     """The compute dtype of ``spec`` on ``device``: ``torch.float32`` or ``torch.bfloat16``.
 
-    ``auto`` → bf16 on CUDA and on CPUs with AMX-BF16 (:func:`cpu_has_bf16`) whose kernels
-    pass :func:`cpu_bf16_gradients_sound`, fp32 elsewhere. ``fp32`` and ``bf16`` are taken
+    ``auto`` → bf16 on CPUs with AMX-BF16 (:func:`cpu_has_bf16`) whose kernels pass
+    :func:`cpu_bf16_gradients_sound`, fp32 elsewhere, CUDA included (see the module's note). ``fp32`` and ``bf16`` are taken
     as they are (:func:`torch_settings` makes an explicit bf16 sound where the kernels are not).
     """
     if spec not in PRECISIONS:
@@ -110,7 +112,7 @@ def resolve_precision(spec: str, device: torch.device) -> torch.dtype:
         return torch.float32
     if spec == "bf16":
         return torch.bfloat16
-    if device.type == "cuda" or (device.type == "cpu" and cpu_has_bf16() and cpu_bf16_gradients_sound()):
+    if device.type == "cpu" and cpu_has_bf16() and cpu_bf16_gradients_sound():
         return torch.bfloat16
     return torch.float32
 

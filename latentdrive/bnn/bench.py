@@ -42,8 +42,8 @@ __all__ = ["BottleneckBenchRow", "bench_bottleneck", "bench_precisions", "format
 def bench_precisions(spec: str, device: torch.device) -> tuple[str, ...]:
     """The precisions ``bench --bottleneck`` measures for ``--set precision=spec``.
 
-    ``auto``: fp32, and bf16 where ``auto`` resolves to it (CUDA, or a CPU with
-    AMX-BF16). Elsewhere bf16 is slower than fp32 (emulated, or without oneDNN where its
+    ``auto``: fp32, and bf16 where ``auto`` resolves to it (a CPU with AMX-BF16; on
+    CUDA ``bf16`` measures it). Elsewhere bf16 is slower than fp32 (emulated, or without oneDNN where its
     bf16 kernels are unsound), and its pass would take long to tell only that: ``bf16``
     measures it anyway. ``fp32``: fp32 only.
     """

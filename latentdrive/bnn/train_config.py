@@ -130,8 +130,8 @@ class BNNTrainConfig(Config):
     )
     precision: Precision = Field(
         "auto",
-        description="'auto' (bf16 autocast on CUDA and on CPUs with AMX-BF16 whose oneDNN kernels "
-        "pass a probe, fp32 elsewhere), 'fp32' or 'bf16'. Weights, optimizer state and losses stay float32. "
+        description="'auto' (bf16 autocast on CPUs with AMX-BF16 whose oneDNN kernels "
+        "pass a probe, fp32 elsewhere, CUDA included), 'fp32' or 'bf16'. Weights, optimizer state and losses stay float32. "
         "bf16 results are reproducible on one machine, not bitwise across machines.",
     )
     prefetch: int = Field(

@@ -22,7 +22,7 @@ encoded observation)`` agent-transitions/s, an upper bound (the acting pass, ele
 work and the extra encodes at episode ends are left out).
 
 Each mode runs in fp32 and, where the run's ``precision`` resolves to bf16 on the device
-(``--set precision=bf16``, or ``auto`` on a CPU with bf16 matrix units or on CUDA), in bf16
+(``--set precision=bf16``, or ``auto`` on a CPU with bf16 matrix units), in bf16
 too, one after the other in the same process, so their ratio is measured in one run.
 
 ``latent`` and ``latent-random`` differ only in the encoder's weights, not in cost, so
@@ -48,7 +48,7 @@ from latentdrive.rl.train import Learner, learner_steps
 from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
 from latentdrive.vec import make_vec
 
-__all__ = ["TrainBenchRow", "bench_training", "format_train_bench", "matmul_gflops"]
+__all__ = ["TrainBenchRow", "bench_config", "bench_training", "format_train_bench", "matmul_gflops"]
 
 #: The authors' public runs: ~4.5 h per 4,000 episodes, about 5 env steps/s per run (ANCHORS.md).
 AUTHORS_ENV_STEPS_PER_S = 5.0
@@ -108,7 +108,8 @@ class TrainBenchRow:
         return {**asdict(self), "other": self.other}
 
 
-def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> TrainBenchRow:
+def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int,
+                ready: Callable[[], None] | None = None) -> TrainBenchRow:
     device = resolve_device(cfg.device)
     with torch_settings(True, device, cfg.threads, resolve_precision(cfg.precision, device)):
         net = build_network(cfg, encoder_config(cfg)).to(device)
@@ -119,6 +120,8 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int) -> Train
             next(steps)
         for _ in range(10):  # warm up the learner and the kernels
             next(steps)
+        if ready is not None:  # processes measured together start their timed loops together
+            ready()
         t_sim0, t_obs0 = vec.timings["simulate"], vec.timings["observe"]
         enc0, learn0, tr0, vsteps = learner.cache.seconds, learner.learn_seconds, learner.transitions, 0
         t0 = time.perf_counter()
@@ -169,23 +172,33 @@ def matmul_gflops(device: torch.device, n: int = 1024, repeat: int = 10) -> floa
     return 2 * n**3 * repeat / (time.perf_counter() - t0) / 1e9
 
 
+def bench_config(mode: str, scenarios: Sequence[str], envs: int, bnn: str | None = None,
+                 overrides: dict[str, Any] | None = None) -> PolicyTrainConfig:
+    """The training run that ``bench --train`` measures for ``mode`` (validated: a bad
+    override fails here, before any work): ``latent`` without a BNN run measures
+    ``latent-random``, an encoder of the same cost."""
+    data: dict[str, Any] = {"mode": mode, "scenarios": list(scenarios), "envs": envs, "steps": 10**9,
+                            "dqn": {"learning_starts": 500}}
+    if mode == "latent":
+        data["bnn"] = bnn
+        if not bnn:
+            data["mode"] = "latent-random"
+    return validate(PolicyTrainConfig, merge_overrides(data, overrides or {}))
+
+
 def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transitions: int = 2000, updates: int = 50,
                    envs: int = 16, bnn: str | None = None, overrides: dict[str, Any] | None = None,
-                   progress: Callable[[str], None] | None = None, repeat: int = 1) -> list[TrainBenchRow]:
+                   progress: Callable[[str], None] | None = None, repeat: int = 1,
+                   ready: Callable[[], None] | None = None) -> list[TrainBenchRow]:
     """One row per mode and precision (fp32, and the run's precision where it resolves to
     bf16); with ``repeat`` > 1 each runs that many times and its row is the median run,
-    with the range of agent-transitions/s beside it."""
+    with the range of agent-transitions/s beside it. ``ready`` is called right before each
+    timed loop (:mod:`latentdrive.rl.bench_shared` holds its processes there)."""
     if repeat < 1:
         raise ValueError(f"repeat must be at least 1, got {repeat}")
     rows = []
     for mode in modes:
-        data: dict[str, Any] = {"mode": mode, "scenarios": list(scenarios), "envs": envs, "steps": 10**9,
-                                "dqn": {"learning_starts": 500}}
-        if mode == "latent":
-            data["bnn"] = bnn
-            if not bnn:
-                data["mode"] = "latent-random"
-        chosen = validate(PolicyTrainConfig, merge_overrides(data, overrides or {}))
+        chosen = bench_config(mode, scenarios, envs, bnn, overrides)
         precisions = ["fp32"]
         if resolve_precision(chosen.precision, resolve_device(chosen.device)) == torch.bfloat16:
             precisions.append("bf16")
@@ -193,7 +206,7 @@ def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transition
             cfg = chosen.replace(precision=precision)
             runs = []
             for _ in range(repeat):
-                runs.append(_bench_mode(cfg, transitions, updates))
+                runs.append(_bench_mode(cfg, transitions, updates, ready))
                 if progress:
                     progress(f"  {mode} {precision}: {runs[-1].transitions_per_s:.0f} agent-transitions/s")
             rates = sorted(r.transitions_per_s for r in runs)
