@@ -70,6 +70,7 @@ def add_reproduce_parsers(sub: Any) -> None:
     s = sub.add_parser("reproduce", help="the paper's study in one command: data, BNNs, policies, evaluations, report")
     s.add_argument("out", help="study folder (rerun the same command to resume; finished steps are skipped)")
     s.add_argument("--preset", default="quick", help="tiny (a minute), quick (default, about 17 min on 2 cores), "
+                   "rates (quick's scale at the paper's costs per unit: measures what `estimate` scales), "
                    "paper, or a .yaml file")
     s.add_argument("--seeds", type=int, default=None, help="training seeds per policy (default: the preset's)")
     s.add_argument("--workers", type=int, default=1, help="steps run at once, each in its own process (default 1; "

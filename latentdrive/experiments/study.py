@@ -51,7 +51,7 @@ from latentdrive.scenarios import (
 
 __all__ = ["IMITATION", "PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config", "policy_name", "reference_name"]
 
-PRESETS = ("tiny", "quick", "paper")
+PRESETS = ("tiny", "quick", "rates", "paper")
 PRESETS_DIR = Path(__file__).parent / "presets"
 REPS = ("raw", "latent")
 ABLATIONS = ("latent-random", "end-to-end", "latent-lam")

@@ -11,7 +11,7 @@ from latentdrive.config import ConfigError
 from latentdrive.experiments.estimate import estimate_study, measured_rates, step_size
 from latentdrive.experiments.graph import Graph, Step, StepRecord
 from latentdrive.experiments.reproduce import estimate_from
-from latentdrive.experiments.study import load_reproduce_config
+from latentdrive.experiments.study import build_graph, load_reproduce_config
 
 
 def _evals(*chain: tuple[str, int, str | None]) -> Graph:
@@ -145,3 +145,15 @@ def test_an_estimate_with_unmeasured_steps_is_a_lower_bound(tiny_study: Path, ca
     assert main(["estimate", str(tiny_study), "--preset", "tiny", "--set", "bnn.train.batch_size=64"]) == 0
     out = capsys.readouterr().out
     assert "wall time with   1 worker(s): at least " in out and "not measured there (counted as 0): bnn:batch64" in out
+
+
+def test_the_rates_preset_measures_every_step_class_of_the_paper_preset() -> None:
+    def classes(preset: str) -> set[str]:
+        graph = build_graph(load_reproduce_config(preset))
+        return {step_size(step, epoch_samples=1e5)[0] for step in graph.steps.values()}
+
+    paper, rates = classes("paper"), classes("rates")
+    assert "bnn:batch64:channels16-32" in paper  # the paper's BNNs, no model section
+    assert paper <= rates, f"not measured by the rates preset: {sorted(paper - rates)}"
+    # The quick preset's BNNs are another class: an estimate from it leaves the paper's out.
+    assert not paper <= classes("quick")
