@@ -53,6 +53,15 @@ class StepKind:
     cpus: int = 1
     gpu: bool = False
 
+    def wants_gpu(self, step: Step) -> bool:
+        """Whether a scheduler should reserve a GPU share for ``step``: its kind can use
+        one and its config does not pin it to the CPU (``train.device: cpu``, as a study
+        sets with ``--set policy.train.device=cpu`` where policies run faster on the
+        cores than sharing a GPU)."""
+        train = step.config.get("train")
+        device = train.get("device", "auto") if isinstance(train, Mapping) else "auto"
+        return self.gpu and device != "cpu"
+
 
 class StepFailed(LatentDriveError):
     """Steps of a study failed; the message names each with its error."""

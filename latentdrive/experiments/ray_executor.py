@@ -47,7 +47,7 @@ class _RayRunner:
 
     def submit(self, kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
                records: StepRecords) -> Any:
-        gpus = self.gpu_fraction if kind.gpu and self.has_gpu else 0
+        gpus = self.gpu_fraction if self.has_gpu and kind.wants_gpu(step) else 0
         return self.remote.options(num_cpus=kind.cpus, num_gpus=gpus, max_retries=self.retries,
                                    retry_exceptions=False, name=step.name).remote(
             kind, step, key, inputs, folder, records)

@@ -8,6 +8,7 @@ import pytest
 
 from latentdrive.config import ConfigError
 from latentdrive.experiments.graph import keyed_config
+from latentdrive.experiments.steps import STEP_KINDS
 from latentdrive.experiments.study import build_graph, load_reproduce_config
 
 
@@ -121,3 +122,14 @@ def test_bnn_step_costs_follow_the_capped_epochs_and_the_scored_samples() -> Non
     assert uncapped.steps["bnn/report"].cost == pytest.approx(30 + 4 * 18_000 / 100)
     # The cap is left out of the key at 0, so studies reported before it keep their keys.
     assert "score_samples" not in keyed_config(uncapped.steps["bnn/report"].config)["study"]
+
+
+def test_policies_pinned_to_the_cpu_ask_a_scheduler_for_no_gpu() -> None:
+    def wants(overrides: dict[str, object]) -> dict[str, bool]:
+        graph = build_graph(load_reproduce_config("tiny", overrides))
+        return {s.kind: STEP_KINDS[s.kind].wants_gpu(s) for s in graph.steps.values()}
+
+    default = wants({})
+    assert default["policy"] and default["bnn"] and not default["evaluate"] and not default["dataset"]
+    pinned = wants({"policy": {"train": {"device": "cpu"}}})
+    assert not pinned["policy"] and pinned["bnn"]
