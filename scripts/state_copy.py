@@ -38,7 +38,8 @@ episodes of ``latentdrive evaluate --episodes N --envs 16``, and compared pairwi
 
     python scripts/state_copy.py [--scenarios roundabout,intersection] [--decisions 20000]
         [--seed 0] [--episodes 200] [--compare RUN] [--no-route] [--target labels|values]
-        [--privileged] [--audit] [--holdout F] [--ensemble K] [--set planner.KEY=VALUE ...]
+        [--privileged] [--audit] [--holdout F] [--ensemble K] [--arch mlp|attention]
+        [--set planner.KEY=VALUE ...]
 
 With ``--audit`` the planner also labels and scores every state each policy acts in on the
 test episodes, so the copy's agreement where it drives stands beside that on its training
@@ -70,7 +71,7 @@ from latentdrive.evaluate.planner import (
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.report import compare, format_compare, format_table, policy_report
 from latentdrive.evaluate.run import evaluate_policy, quotas
-from latentdrive.observe.state import nearest, state_features, state_size
+from latentdrive.observe.state import PER_NEIGHBOUR, nearest, state_features, state_size
 from latentdrive.rl.imitate import (
     ExpertLabels,
     ImitationConfig,
@@ -127,13 +128,43 @@ def mlp(n_in: int, hidden: int) -> nn.Module:
                          nn.Linear(hidden, N_ACTIONS))
 
 
-class Ensemble(nn.Module):
-    """``k`` MLPs of different initial weights trained on the same batches (``--ensemble``);
-    the policy reads the mean of their outputs."""
+class EgoAttention(nn.Module):
+    """Ego-attention over the neighbours (``--arch attention``; Leurent and Mercat, "Social
+    attention for autonomous decision-making in dense traffic", 2019): the AV's own features
+    and each neighbour's row (with ``--privileged``, its hidden driver state beside it) are
+    embedded by layers shared across vehicles; the AV's embedding queries every present
+    vehicle's, its own included, with ``heads`` heads; the logits come from the AV's
+    embedding and what it attended to. Unlike the MLP, which gives each rank of the
+    nearest-first order its own weights, it reads the neighbours as a set."""
 
-    def __init__(self, n_in: int, hidden: int, k: int) -> None:
+    def __init__(self, ego: int, per: int, k: int, hidden: int, width: int = 64, heads: int = 4) -> None:
         super().__init__()
-        self.nets = nn.ModuleList(mlp(n_in, hidden) for _ in range(k))
+        self.ego, self.per, self.k = ego, per, k
+        self.embed_ego = nn.Sequential(nn.Linear(ego, width), nn.ReLU(), nn.Linear(width, width))
+        self.embed_other = nn.Sequential(nn.Linear(per, width), nn.ReLU(), nn.Linear(width, width))
+        self.attend = nn.MultiheadAttention(width, heads, batch_first=True)
+        self.head = nn.Sequential(nn.Linear(2 * width, hidden), nn.ReLU(), nn.Linear(hidden, N_ACTIONS))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        b, seen = x.shape[0], self.ego + self.k * PER_NEIGHBOUR
+        others = x[:, self.ego: seen].reshape(b, self.k, PER_NEIGHBOUR)
+        if self.per > PER_NEIGHBOUR:  # --privileged: the hidden rows follow the observed ones
+            others = torch.cat([others, x[:, seen:].reshape(b, self.k, self.per - PER_NEIGHBOUR)], dim=2)
+        # A row's last observed feature is 1 for a vehicle and 0 for padding.
+        absent = torch.cat([torch.zeros(b, 1, dtype=torch.bool), others[:, :, PER_NEIGHBOUR - 1] < 0.5], dim=1)
+        me = self.embed_ego(x[:, : self.ego])
+        tokens = torch.cat([me[:, None], self.embed_other(others)], dim=1)
+        mixed, _ = self.attend(me[:, None], tokens, tokens, key_padding_mask=absent, need_weights=False)
+        return self.head(torch.cat([me, mixed[:, 0]], dim=1))
+
+
+class Ensemble(nn.Module):
+    """``k`` networks of different initial weights trained on the same batches
+    (``--ensemble``); the policy reads the mean of their outputs."""
+
+    def __init__(self, make: Callable[[], nn.Module], k: int) -> None:
+        super().__init__()
+        self.nets = nn.ModuleList(make() for _ in range(k))
 
     def members(self, x: torch.Tensor) -> torch.Tensor:
         """``(k, B, N_ACTIONS)`` each member's output for ``x`` ``(B, F)``."""
@@ -254,7 +285,14 @@ def train(args: argparse.Namespace, scenarios: list[str]) -> StateCopy:
     imitation = ImitationConfig()
     vec = make_vec(scenarios, args.envs, backend="fast")
     n_in = state_size(args.neighbours, not args.no_route) + (args.neighbours * PRIVILEGED if args.privileged else 0)
-    net = mlp(n_in, args.hidden) if args.ensemble == 1 else Ensemble(n_in, args.hidden, args.ensemble)
+
+    def make() -> nn.Module:
+        if args.arch == "attention":
+            per = PER_NEIGHBOUR + (PRIVILEGED if args.privileged else 0)
+            return EgoAttention(state_size(0, not args.no_route), per, args.neighbours, args.hidden)
+        return mlp(n_in, args.hidden)
+
+    net = make() if args.ensemble == 1 else Ensemble(make, args.ensemble)
     print(f"state copy: {n_in} inputs, {sum(p.numel() for p in net.parameters()):,} parameters")
     copy = StateCopy(net, args.neighbours, args.radius, not args.no_route, args.privileged)
     opt = (torch.optim.AdamW(net.parameters(), lr=args.lr, weight_decay=args.weight_decay) if args.weight_decay
@@ -345,6 +383,9 @@ def main() -> int:
                          "score of each first action against its choice (Huber regression; the policy takes the best); "
                          "weighted: labels, each weighted by what its worst alternative would cost")
     ap.add_argument("--hidden", type=int, default=256)
+    ap.add_argument("--arch", choices=("mlp", "attention"), default="mlp",
+                    help="mlp: two hidden layers over the whole vector; attention: the AV's features "
+                    "attend over its neighbours' rows, read as a set (EgoAttention)")
     ap.add_argument("--holdout", type=float, default=0.0,
                     help="share of the labelled decisions (every 1/F-th) kept out of training and judged "
                          "with --audit: unseen states of the copy's own distribution (default 0)")

@@ -105,6 +105,11 @@ class VFANBody(nn.Module):
 
     def forward(self, x: Tensor) -> Tensor:
         if not self.pointwise:
+            if x.device.type == "cpu":
+                # oneDNN's 3D convolutions run faster on channels-last input (docs/performance.md,
+                # "Channels-last maps"); the weights keep their layout, so checkpoints do not
+                # change. Replay's batches come laid out so; this copies only other input.
+                x = x.contiguous(memory_format=torch.channels_last_3d)
             h = self.net(x)
         else:
             # A 1×1×1 volume: each convolution is exactly a dense layer over the channels;

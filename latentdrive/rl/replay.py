@@ -132,7 +132,10 @@ class FrameStore:
         if len(ids) and chain.min() < oldest:
             raise IndexError("frame evicted from the store")
         frames = self.data[chain % self.capacity]  # (k, T, 4, H, W)
-        return dequantize(frames.transpose(0, 2, 1, 3, 4))
+        # Laid out channels-last, (k, T, H, W, 4) in memory, indexed (k, 4, T, H, W): the
+        # VFAN's CPU convolutions take that layout as it is (QNetwork's body), where any
+        # other one costs them a copy per forward pass.
+        return dequantize(np.ascontiguousarray(frames.transpose(0, 1, 3, 4, 2))).transpose(0, 4, 1, 2, 3)
 
     def state(self) -> dict[str, np.ndarray]:
         """The filled slots only (see :func:`_check`)."""

@@ -59,6 +59,18 @@ def test_sampled_raw_stacks_equal_the_env_observations_within_quantization():
     # Sampling goes through the same path.
     batch = learner.replay.sample(np.random.default_rng(0), 16)
     assert batch.obs.shape == (16, 4, 3, 16, 32) and batch.next_obs.shape == batch.obs.shape
+    # Laid out channels-last, as the VFAN's CPU convolutions take them without a copy.
+    assert batch.obs.is_contiguous(memory_format=torch.channels_last_3d)
+
+
+def test_the_vfan_gives_the_same_q_values_whatever_its_inputs_layout():
+    learner, net, _ = _record("raw", steps=10)
+    batch = learner.replay.sample(np.random.default_rng(0), 8)
+    plain = batch.obs.contiguous()
+    assert not plain.is_contiguous(memory_format=torch.channels_last_3d)
+    with torch.no_grad():
+        # The body's layers on the plain layout (forward would convert it) against forward.
+        assert torch.allclose(net(batch.obs), net.body.net(plain), rtol=1e-5, atol=1e-6)
 
 
 def test_latent_replay_is_exactly_encoding_at_sampling_time():
