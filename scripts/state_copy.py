@@ -151,7 +151,8 @@ class EgoAttention(nn.Module):
         if self.per > PER_NEIGHBOUR:  # --privileged: the hidden rows follow the observed ones
             others = torch.cat([others, x[:, seen:].reshape(b, self.k, self.per - PER_NEIGHBOUR)], dim=2)
         # A row's last observed feature is 1 for a vehicle and 0 for padding.
-        absent = torch.cat([torch.zeros(b, 1, dtype=torch.bool), others[:, :, PER_NEIGHBOUR - 1] < 0.5], dim=1)
+        absent = torch.cat([torch.zeros(b, 1, dtype=torch.bool, device=x.device), others[:, :, PER_NEIGHBOUR - 1] < 0.5],
+                           dim=1)
         me = self.embed_ego(x[:, : self.ego])
         tokens = torch.cat([me[:, None], self.embed_other(others)], dim=1)
         mixed, _ = self.attend(me[:, None], tokens, tokens, key_padding_mask=absent, need_weights=False)

@@ -3,12 +3,13 @@ deterministic algorithms on and off, and torch.profiler's busiest operations.
 
     python scripts/update_profile.py            # raw and latent-random, fp32 and bf16
 
-Needs CUDA (it times with device synchronizations). It builds the learner as
-``latentdrive bench --train`` does (16 envs of roundabout and merge, the default DQN),
+Needs CUDA (it times with device synchronizations). It builds the learner with the
+settings ``latentdrive bench --train`` uses (16 envs, the default DQN; here of roundabout
+and merge rather than all five scenarios),
 fills 600 agent-transitions, then times 60 calls of each: ``Learner.update_step`` (sample
 and update), the replay's ``sample`` alone, and ``update`` on one fixed batch, in
-milliseconds per call. With deterministic algorithms and bf16 it also prints the
-profiler's tables of 20 update steps, by host (CPU) time and by device time: a device
+milliseconds per call. With deterministic algorithms and bf16 (``auto``'s choice on CUDA
+when it was measured; fp32 now) it also prints the profiler's tables of 20 update steps, by host (CPU) time and by device time: a device
 that computes for a fraction of the host's time is bound by the host's launches.
 """
 

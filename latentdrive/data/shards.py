@@ -84,8 +84,11 @@ def quantize(x: NDArray[np.floating]) -> NDArray[np.uint8]:
 
 
 def dequantize(q: NDArray[np.uint8]) -> NDArray[np.float32]:
-    """``q / 255`` as float32 in [0, 1]; within :data:`QUANT_MAX_ERROR` of the original."""
-    return q.astype(np.float32) / np.float32(255.0)
+    """``q / 255`` as float32 in [0, 1]; within :data:`QUANT_MAX_ERROR` of the original.
+    C-contiguous in ``q``'s index order, whatever its strides (one copy, divided in place)."""
+    out = q.astype(np.float32, order="C")
+    out /= np.float32(255.0)
+    return out
 
 
 def array_digest(arrays: Mapping[str, np.ndarray]) -> str:

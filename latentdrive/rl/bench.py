@@ -35,7 +35,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass
-from typing import Any
+from typing import Any, Protocol
 
 import torch
 from torch.utils.flop_counter import FlopCounterMode
@@ -48,7 +48,7 @@ from latentdrive.rl.train import Learner, learner_steps
 from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
 from latentdrive.vec import make_vec
 
-__all__ = ["TrainBenchRow", "bench_config", "bench_training", "format_train_bench", "matmul_gflops"]
+__all__ = ["Together", "TrainBenchRow", "bench_config", "bench_training", "format_train_bench", "matmul_gflops"]
 
 #: The authors' public runs: ~4.5 h per 4,000 episodes, about 5 env steps/s per run (ANCHORS.md).
 AUTHORS_ENV_STEPS_PER_S = 5.0
@@ -108,8 +108,23 @@ class TrainBenchRow:
         return {**asdict(self), "other": self.other}
 
 
+class Together(Protocol):
+    """Processes measured together (:mod:`latentdrive.rl.bench_shared`): their timed loops
+    start together and all stop when the first one is done, so each is timed against the
+    same load."""
+
+    def start(self) -> None:
+        """Wait until every process is ready to time."""
+
+    def over(self) -> bool:
+        """Whether another process has ended its timed loop."""
+
+    def end(self) -> None:
+        """This process has ended its timed loop."""
+
+
 def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int,
-                ready: Callable[[], None] | None = None) -> TrainBenchRow:
+                together: Together | None = None) -> TrainBenchRow:
     device = resolve_device(cfg.device)
     with torch_settings(True, device, cfg.threads, resolve_precision(cfg.precision, device)):
         net = build_network(cfg, encoder_config(cfg)).to(device)
@@ -120,15 +135,17 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int,
             next(steps)
         for _ in range(10):  # warm up the learner and the kernels
             next(steps)
-        if ready is not None:  # processes measured together start their timed loops together
-            ready()
+        if together is not None:
+            together.start()
         t_sim0, t_obs0 = vec.timings["simulate"], vec.timings["observe"]
         enc0, learn0, tr0, vsteps = learner.cache.seconds, learner.learn_seconds, learner.transitions, 0
         t0 = time.perf_counter()
-        while learner.transitions - tr0 < transitions:
+        while learner.transitions - tr0 < transitions and not (together is not None and together.over()):
             next(steps)
             vsteps += 1
         wall = time.perf_counter() - t0
+        if together is not None:
+            together.end()
         done = learner.transitions - tr0
         share = {
             "simulate": (vec.timings["simulate"] - t_sim0) / wall, "render": (vec.timings["observe"] - t_obs0) / wall,
@@ -189,11 +206,11 @@ def bench_config(mode: str, scenarios: Sequence[str], envs: int, bnn: str | None
 def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transitions: int = 2000, updates: int = 50,
                    envs: int = 16, bnn: str | None = None, overrides: dict[str, Any] | None = None,
                    progress: Callable[[str], None] | None = None, repeat: int = 1,
-                   ready: Callable[[], None] | None = None) -> list[TrainBenchRow]:
+                   together: Together | None = None) -> list[TrainBenchRow]:
     """One row per mode and precision (fp32, and the run's precision where it resolves to
     bf16); with ``repeat`` > 1 each runs that many times and its row is the median run,
-    with the range of agent-transitions/s beside it. ``ready`` is called right before each
-    timed loop (:mod:`latentdrive.rl.bench_shared` holds its processes there)."""
+    with the range of agent-transitions/s beside it. With ``together`` each timed loop
+    starts and stops with those of other processes (:mod:`latentdrive.rl.bench_shared`)."""
     if repeat < 1:
         raise ValueError(f"repeat must be at least 1, got {repeat}")
     rows = []
@@ -206,7 +223,7 @@ def bench_training(modes: Sequence[str], scenarios: Sequence[str], *, transition
             cfg = chosen.replace(precision=precision)
             runs = []
             for _ in range(repeat):
-                runs.append(_bench_mode(cfg, transitions, updates, ready))
+                runs.append(_bench_mode(cfg, transitions, updates, together))
                 if progress:
                     progress(f"  {mode} {precision}: {runs[-1].transitions_per_s:.0f} agent-transitions/s")
             rates = sorted(r.transitions_per_s for r in runs)

@@ -134,8 +134,8 @@ class FrameStore:
         frames = self.data[chain % self.capacity]  # (k, T, 4, H, W)
         # Laid out channels-last, (k, T, H, W, 4) in memory, indexed (k, 4, T, H, W): the
         # VFAN's CPU convolutions take that layout as it is (QNetwork's body), where any
-        # other one costs them a copy per forward pass.
-        return dequantize(np.ascontiguousarray(frames.transpose(0, 1, 3, 4, 2))).transpose(0, 4, 1, 2, 3)
+        # other one costs them a copy per forward pass. The dequantizing copy lays it out.
+        return dequantize(frames.transpose(0, 1, 3, 4, 2)).transpose(0, 4, 1, 2, 3)
 
     def state(self) -> dict[str, np.ndarray]:
         """The filled slots only (see :func:`_check`)."""
@@ -149,6 +149,14 @@ class FrameStore:
         _restore(self.data, arrays["data"], self.added, added, 0)
         _restore(self.prev, arrays["prev"], self.added, added, -1)
         self.added = added
+
+
+def _on(stored: np.ndarray, device: torch.device | str) -> torch.Tensor:
+    """Stored observations as a tensor on ``device``: as laid out on the CPU (raw stacks
+    come channels-last for its convolutions), contiguous elsewhere, where that layout's
+    speed is not measured."""
+    t = torch.from_numpy(stored).to(device)
+    return t if t.device.type == "cpu" else t.contiguous()
 
 
 class Replay:
@@ -215,11 +223,11 @@ class Replay:
             p = self.tree.leaves(len(self))[idx] / self.tree.total
             w = (len(self) * p) ** -beta
             weight = torch.from_numpy((w / w.max()).astype(np.float32)).to(device)
-        obs = self.store.get(self.obs_id[idx])
-        nxt = self.store.get(self.next_id[idx])
+        obs = _on(self.store.get(self.obs_id[idx]), device)
+        nxt = _on(self.store.get(self.next_id[idx]), device)
         return Batch(
-            torch.from_numpy(obs).to(device), torch.from_numpy(self.action[idx]).to(device),
-            torch.from_numpy(self.reward[idx]).to(device), torch.from_numpy(nxt).to(device),
+            obs, torch.from_numpy(self.action[idx]).to(device),
+            torch.from_numpy(self.reward[idx]).to(device), nxt,
             torch.from_numpy((~self.terminated[idx]).astype(np.float32)).to(device),
             torch.from_numpy(self.steps[idx].astype(np.float32)).to(device), weight, idx,
         )

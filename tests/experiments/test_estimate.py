@@ -157,3 +157,11 @@ def test_the_rates_preset_measures_every_step_class_of_the_paper_preset() -> Non
     assert paper <= rates, f"not measured by the rates preset: {sorted(paper - rates)}"
     # The quick preset's BNNs are another class: an estimate from it leaves the paper's out.
     assert not paper <= classes("quick")
+    # What a class leaves out but a unit's cost depends on matches too.
+    p, r = load_reproduce_config("paper"), load_reproduce_config("rates")
+    assert r.bnn.model == p.bnn.model and r.bnn.train.batch_size == p.bnn.train.batch_size
+    assert r.evaluate.planner == p.evaluate.planner and r.evaluate.envs == p.evaluate.envs
+    for cfg in (p, r):  # held-out episodes during training, per 1,000 agent-transitions: 2
+        t = cfg.policy.train
+        assert t["eval_episodes"] * 1000 / t["segment"] == 2
+        assert cfg.policy.finetune_steps % t["segment"] == 0  # fine-tuning evaluates as often

@@ -5,10 +5,14 @@ import queue
 import subprocess
 import sys
 from types import SimpleNamespace
+from typing import Any
 
 import pytest
 
 from latentdrive.config import ConfigError
+from latentdrive.errors import LatentDriveError
+from latentdrive.rl import bench_shared as shared
+from latentdrive.rl.bench import bench_training
 from latentdrive.rl.bench_shared import SharedRow, _collect, bench_training_shared, format_shared
 
 from .test_bench import SMALL
@@ -30,7 +34,14 @@ def test_the_median_and_sum_are_the_processes():
     assert row.as_dict()["processes"] == 3 and "0.50x" in format_shared([row])
 
 
-def test_a_bad_override_fails_before_any_process_starts():
+def test_a_bad_mode_fails_before_any_process_starts(monkeypatch):
+    # The second mode is the bad one: the lone run would time the first before failing.
+    def no_run(*args, **kwargs):
+        raise AssertionError("measured before the modes were checked")
+
+    monkeypatch.setattr(shared, "bench_training", no_run)
+    with pytest.raises(ConfigError):
+        bench_training_shared(2, ["raw", "no-such-mode"], ["merge"], transitions=24, envs=2, overrides=SMALL)
     with pytest.raises(ConfigError):
         bench_training_shared(2, ["raw"], ["merge"], transitions=24, envs=2, overrides={**SMALL, "dqn": {"gamma": 2.0}})
     with pytest.raises(ValueError, match="at least 2"):
@@ -42,7 +53,7 @@ def test_a_failure_inside_a_process_is_reported_with_its_cause_not_the_others_br
     results.put((1, None, "BrokenBarrierError: "))
     results.put((0, None, "ValueError: the replay is empty"))
     procs = [SimpleNamespace(exitcode=1), SimpleNamespace(exitcode=1)]
-    with pytest.raises(RuntimeError, match="process 0: ValueError: the replay is empty"):
+    with pytest.raises(LatentDriveError, match="process 0: ValueError: the replay is empty"):
         _collect(procs, results)
 
 
@@ -50,8 +61,45 @@ def test_a_process_killed_before_reporting_is_named():
     results: queue.Queue = queue.Queue()
     results.put((0, [{"mode": "raw"}], None))
     procs = [SimpleNamespace(exitcode=0), SimpleNamespace(exitcode=-9)]
-    with pytest.raises(RuntimeError, match="process 1 exited with code -9"):
+    with pytest.raises(LatentDriveError, match="process 1 exited with code -9"):
         _collect(procs, results)
+
+
+def test_a_process_that_exits_without_its_result_is_named_even_with_code_0():
+    results: queue.Queue = queue.Queue()
+    procs = [SimpleNamespace(exitcode=0)]
+    with pytest.raises(LatentDriveError, match="process 0 exited with code 0 before reporting"):
+        _collect(procs, results)
+
+
+class _Counting:
+    """A :class:`~latentdrive.rl.bench.Together` that another process ends after ``after`` checks."""
+
+    def __init__(self, after: int) -> None:
+        self.starts = self.ends = self.checks = 0
+        self.after = after
+
+    def start(self) -> None:
+        self.starts += 1
+
+    def over(self) -> bool:
+        self.checks += 1
+        return self.checks > self.after
+
+    def end(self) -> None:
+        self.ends += 1
+
+
+def test_each_timed_loop_starts_together_and_stops_when_another_process_is_done():
+    kwargs: dict[str, Any] = {"transitions": 400, "updates": 2, "envs": 2, "overrides": SMALL}
+    free = _Counting(after=10**9)
+    (full,) = bench_training(["raw"], ["merge"], **kwargs, together=free)
+    assert (free.starts, free.ends) == (1, 1) and free.checks > 50  # it ran its 400 transitions
+    stopped = _Counting(after=3)
+    (early,) = bench_training(["raw"], ["merge"], **kwargs, together=stopped)
+    # Three vector steps, then the fourth check finds the window over.
+    assert (stopped.starts, stopped.ends) == (1, 1) and stopped.checks == 4
+    assert early.env_steps_per_s > 0 and full.env_steps_per_s > 0
 
 
 def test_every_process_reporting_gives_their_rows_in_process_order():

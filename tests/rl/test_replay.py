@@ -63,6 +63,17 @@ def test_sampled_raw_stacks_equal_the_env_observations_within_quantization():
     assert batch.obs.is_contiguous(memory_format=torch.channels_last_3d)
 
 
+def test_batches_keep_the_channels_last_layout_on_the_cpu_only():
+    from latentdrive.rl.replay import _on
+
+    learner, _, _ = _record("raw", steps=10)
+    stored = learner.replay.store.get(np.arange(4))
+    assert _on(stored, "cpu").is_contiguous(memory_format=torch.channels_last_3d)
+    # Any other device gets the plain layout (a device that holds no data stands in for CUDA).
+    elsewhere = _on(stored, "meta")
+    assert elsewhere.is_contiguous() and elsewhere.shape == stored.shape
+
+
 def test_the_vfan_gives_the_same_q_values_whatever_its_inputs_layout():
     learner, net, _ = _record("raw", steps=10)
     batch = learner.replay.sample(np.random.default_rng(0), 8)
