@@ -21,8 +21,7 @@ from collections.abc import Callable
 
 import torch
 
-from latentdrive.config import validate
-from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.bench import bench_config
 from latentdrive.rl.dqn import update
 from latentdrive.rl.policy import build_network, encoder_config
 from latentdrive.rl.train import Learner, learner_steps
@@ -43,8 +42,7 @@ def timed(fn: Callable[[], object], n: int, device: torch.device) -> float:
 
 
 def profile_mode(mode: str, deterministic: bool, precision: str) -> None:
-    cfg = validate(PolicyTrainConfig, {"mode": mode, "scenarios": ["roundabout", "merge"], "envs": 16,
-                                       "steps": 10**9, "dqn": {"learning_starts": 500}, "precision": precision})
+    cfg = bench_config(mode, ["roundabout", "merge"], 16, overrides={"precision": precision})
     device = resolve_device(cfg.device)
     with torch_settings(deterministic, device, 1, resolve_precision(cfg.precision, device)):
         net = build_network(cfg, encoder_config(cfg)).to(device)
