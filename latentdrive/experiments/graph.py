@@ -47,6 +47,9 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("dqn", "explore_rule"): 0.0,
     ("keep",): "last",
     ("planner", "human_routes"): "known",
+    ("vfan", "reader"): "conv",
+    ("vfan", "attention_width"): 64,
+    ("vfan", "attention_heads"): 4,
 }
 
 

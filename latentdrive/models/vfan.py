@@ -38,11 +38,12 @@ from typing import Literal
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field
+from pydantic import Field, model_validator
 from torch import Tensor, nn
 
 from latentdrive.actions import N_ACTIONS
 from latentdrive.config import Config
+from latentdrive.models.attention import MapAttentionBody
 from latentdrive.models.bottleneck import BottleneckNetwork
 
 __all__ = ["LATENT_MODES", "MODES", "Mode", "QNetwork", "VFANConfig"]
@@ -61,6 +62,15 @@ class VFANConfig(Config):
     strides: tuple[int, int] = Field((4, 2), description="Spatial strides of the first two layers (the third has stride 1).")
     temporal_kernel: int = Field(3, ge=1, le=8, description="Temporal kernel (frames) of the second and third layers, clipped to T.")
     hidden: int = Field(512, ge=8, le=4096, description="Width of the fully connected layer before the Q-values.")
+    reader: Literal["conv", "attention"] = Field("conv", description="How the raw map is read: 'conv', the paper's 3D-convolutional body (the fields above); 'attention', a convolutional stem to a grid of 6 m tokens that the observer's own token queries by multi-head attention, the same weights for every cell (latentdrive.models.attention; raw mode only; channels, kernels, strides and temporal_kernel do not apply).")
+    attention_width: int = Field(64, ge=8, le=1024, description="Token features of the attention reader (reader 'attention').")
+    attention_heads: int = Field(4, ge=1, le=64, description="Attention heads of the attention reader; must divide attention_width.")
+
+    @model_validator(mode="after")
+    def _heads_divide(self) -> VFANConfig:
+        if self.attention_width % self.attention_heads:
+            raise ValueError(f"attention_heads={self.attention_heads} does not divide attention_width={self.attention_width}")
+        return self
 
 
 def _conv(c_in: int, c_out: int, size: tuple[int, int, int], kernel: tuple[int, int, int],
@@ -144,10 +154,14 @@ class QNetwork(nn.Module):
         encoder: the bottleneck network (latent modes and end-to-end); its parameters are
             frozen in the latent modes and trained in end-to-end.
         dueling: a dueling head (value and advantage streams) instead of one output layer.
+        geometry: the map's cell size and the distance it sees behind the observer,
+            metres (``ObservationConfig.resolution``, ``.behind``): where the attention
+            reader's tokens lie (``cfg.reader == "attention"``, which needs it).
     """
 
     def __init__(self, cfg: VFANConfig, mode: Mode, observation_shape: tuple[int, int, int, int],
-                 encoder: BottleneckNetwork | None = None, dueling: bool = False) -> None:
+                 encoder: BottleneckNetwork | None = None, dueling: bool = False,
+                 geometry: tuple[float, float] | None = None) -> None:
         super().__init__()
         if mode not in MODES:
             raise ValueError(f"unknown mode {mode!r}: choose one of {', '.join(MODES)}")
@@ -172,7 +186,16 @@ class QNetwork(nn.Module):
             body_input: tuple[int, int, int, int] = (n_latent, 1, 1, 1)
         else:
             body_input = observation_shape
-        self.body = VFANBody(cfg, body_input, dueling=dueling)
+        self.body: nn.Module
+        if cfg.reader == "attention":
+            if mode != "raw":
+                raise ValueError(f"the attention reader reads raw maps; mode {mode!r} feeds the body latents")
+            if geometry is None:
+                raise ValueError("the attention reader needs the map's geometry (resolution, behind)")
+            self.body = MapAttentionBody(observation_shape, *geometry, width=cfg.attention_width,
+                                         heads=cfg.attention_heads, hidden=cfg.hidden, dueling=dueling)
+        else:
+            self.body = VFANBody(cfg, body_input, dueling=dueling)
 
     @property
     def stored_shape(self) -> tuple[int, ...]:

@@ -84,6 +84,9 @@ class PolicyTrainConfig(Config):
         if self.learner == "dagger" and self.backend != "fast":
             raise ValueError("learner 'dagger' needs backend 'fast': its experts read the fast backend's simulator "
                              "(the lookahead planner branches its state; the rule driver reads its specs)")
+        if self.vfan.reader == "attention" and self.mode != "raw":
+            raise ValueError(f"vfan.reader 'attention' reads raw maps: mode {self.mode!r} feeds the body latents "
+                             "(use it with mode 'raw')")
         if self.dqn.augment_shift > 0 and self.mode not in ("raw", "end-to-end"):
             raise ValueError(f"dqn.augment_shift shifts maps: mode {self.mode!r} learns from stored latents "
                              "(use it with mode 'raw' or 'end-to-end')")

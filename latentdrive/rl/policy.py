@@ -101,7 +101,8 @@ def build_network(cfg: PolicyTrainConfig, encoder_cfg: BottleneckConfig | None,
             encoder = load_trained_bottleneck(cfg.bnn)
         else:
             encoder = BottleneckNetwork(encoder_cfg)
-    return QNetwork(cfg.vfan, cfg.mode, cfg.observation.shape, encoder, dueling=cfg.dqn.dueling)
+    return QNetwork(cfg.vfan, cfg.mode, cfg.observation.shape, encoder, dueling=cfg.dqn.dueling,
+                    geometry=(cfg.observation.resolution, cfg.observation.behind))
 
 
 class FeatureCache:

@@ -89,6 +89,7 @@ def test_the_dueling_head_combines_value_and_mean_centred_advantages(mode):
     q = net(stored)
     assert q.shape == (3, 5)
     body = net.body
+    assert isinstance(body, VFANBody)
     if mode == "end-to-end":
         assert net.encoder is not None
         x = net.encoder.encode(stored)

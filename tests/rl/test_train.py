@@ -149,14 +149,15 @@ LEARNER_OPTIONS = {"n_step": 3, "prioritized": True, "dueling": True, "tau": 0.0
                    "augment_shift": 1, "explore_rule": 0.5, "adam_eps": 1.5e-4}
 
 
-@pytest.mark.parametrize("options", [{}, LEARNER_OPTIONS], ids=["defaults", "options"])
-def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_path, tiny, monkeypatch, options):
+@pytest.mark.parametrize(("options", "vfan"), [({}, {}), (LEARNER_OPTIONS, {}), (LEARNER_OPTIONS, {"reader": "attention"})],
+                         ids=["defaults", "options", "attention-reader"])
+def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_path, tiny, monkeypatch, options, vfan):
     # The default buffer holds 100k transitions: saved whole, a raw replay takes 400 MB
     # at this tiny grid (1.6 GB at the default one) whatever the run's length.
     from latentdrive.bnn.checkpoint import read_checkpoint
     from latentdrive.rl.train import Learner
 
-    cfg = tiny(mode="raw", steps=200, dqn={"buffer_size": 100_000, **options})
+    cfg = tiny(mode="raw", steps=200, dqn={"buffer_size": 100_000, **options}, vfan=vfan)
     train_policy(cfg, tmp_path / "whole", **_quiet())
     save = Learner.save
 

@@ -1,0 +1,115 @@
+"""An ego-attention reader of the VelocityMap (``vfan.reader: attention``; raw mode only).
+
+The paper's VFAN ends its convolutions on a 1 × 4 grid and gives each of those positions
+its own weights in the fully connected layer: what it learns of a car at one place does not
+carry to a car at another. A Q-network that reads exact states generalizes across vehicles
+when it reads them as a set (ego-attention over the neighbours; Leurent and Mercat, "Social
+attention for autonomous decision-making in dense traffic", 2019), and not with an MLP that
+gives each neighbour's rank its own weights (``scripts/state_dqn.py``; docs/learning.md). This
+reader applies the same idea to the map's cells:
+
+- a convolutional stem over the frames stacked as channels, ``(C·T, H, W)``, down to a grid
+  of ``(H/4) × (W/4)`` tokens (6 m squares at the default 1.5 m cells), each token one
+  cell's features plus a linear embedding of its centre's position relative to the observer
+  (metres / 50, along and across its heading);
+- the token of the observer's own cell, embedded, queries every token with ``heads`` heads
+  (shared weights for every cell: a car contributes the same way wherever it is, its
+  position entering only as a feature);
+- Q-values from the observer's token and what it attended to (or, with the dueling head,
+  value and advantage streams from them).
+
+An option measured against the paper's VFAN, never a silent replacement: the paper's body
+is ``reader: conv``, the default.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import Tensor, nn
+
+from latentdrive.actions import N_ACTIONS
+
+__all__ = ["MapAttentionBody", "token_grid"]
+
+#: Downsampling of the stem (two stride-2 convolutions).
+STRIDE = 4
+
+
+def token_grid(height: int, width: int, resolution: float, behind: float) -> tuple[Tensor, tuple[int, int]]:
+    """The centres of the stem's token cells relative to the observer, metres / 50, along
+    (x, ahead) and across (y, to the right: row order) its heading, ``(H/4 · W/4, 2)``
+    float32 in row-major order; and the (row, column) of the token holding the observer.
+
+    The frame's columns run from ``behind`` metres behind the observer forward, its rows
+    across the heading with the observer on the line between the two middle rows
+    (:func:`latentdrive.observe.velocitymap.render_frame`); a token covers ``STRIDE`` cells
+    of ``resolution`` metres on each side."""
+    # Each stride-2 convolution (kernel 4 padding 1, then kernel 3 padding 1) gives
+    # floor(n/2), then ceil(n/2), positions.
+    rows, cols = -(-(height // 2) // 2), -(-(width // 2) // 2)
+    size = STRIDE * resolution
+    x = (torch.arange(cols, dtype=torch.float64) + 0.5) * size - behind
+    y = (torch.arange(rows, dtype=torch.float64) + 0.5) * size - height * resolution / 2.0
+    grid = torch.stack(torch.meshgrid(x, y, indexing="xy"), dim=-1).reshape(-1, 2) / 50.0
+    me = (min(rows - 1, int(height / 2.0 // STRIDE)), min(cols - 1, int(behind / resolution // STRIDE)))
+    return grid.float(), me
+
+
+class MapAttentionBody(nn.Module):
+    """Input ``(B, C, T, H, W)`` maps → Q-values ``(B, n_actions)`` (module docstring).
+
+    Args:
+        input_shape: ``(C, T, H, W)``; H and W at least 4.
+        resolution, behind: the map's cell size and the distance it sees behind the
+            observer, metres (``ObservationConfig``): where the tokens lie.
+        width: token features; heads: attention heads (must divide width); hidden: the
+            head's hidden layer.
+    """
+
+    def __init__(self, input_shape: tuple[int, int, int, int], resolution: float, behind: float,
+                 width: int = 64, heads: int = 4, hidden: int = 256, n_actions: int = N_ACTIONS,
+                 dueling: bool = False) -> None:
+        super().__init__()
+        c, t, h, w = input_shape
+        if h < STRIDE or w < STRIDE:
+            raise ValueError(f"the attention reader needs maps of at least {STRIDE} × {STRIDE} cells, got {h} × {w}")
+        self.stem = nn.Sequential(
+            nn.Conv2d(c * t, width // 2, kernel_size=4, stride=2, padding=1), nn.ReLU(),
+            nn.Conv2d(width // 2, width, kernel_size=3, stride=2, padding=1), nn.ReLU(),
+        )
+        grid, self.me = token_grid(h, w, resolution, behind)
+        self.grid: Tensor
+        self.register_buffer("grid", grid, persistent=False)
+        self.position = nn.Linear(2, width)
+        self.query = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, width))
+        self.attend = nn.MultiheadAttention(width, heads, batch_first=True)
+        self.dueling = dueling
+        if dueling:
+            self.value = nn.Sequential(nn.Linear(2 * width, hidden), nn.ReLU(), nn.Linear(hidden, 1))
+            self.advantage = nn.Sequential(nn.Linear(2 * width, hidden), nn.ReLU(), nn.Linear(hidden, n_actions))
+        else:
+            self.head = nn.Sequential(nn.Linear(2 * width, hidden), nn.ReLU(), nn.Linear(hidden, n_actions))
+
+    def tokens(self, x: Tensor) -> Tensor:
+        """Maps ``(B, C, T, H, W)`` → tokens ``(B, N, width)``, cell features plus position."""
+        b, c, t, h, w = x.shape
+        f = self.stem(x.reshape(b, c * t, h, w))  # (B, width, rows, cols)
+        if f.shape[2] * f.shape[3] != self.grid.shape[0]:
+            raise ValueError(f"maps of {h} × {w} cells, not those this reader was built for")
+        return f.flatten(2).transpose(1, 2) + self.position(self.grid.to(f.dtype))
+
+    def read(self, tokens: Tensor, me: int) -> Tensor:
+        """Q-values ``(B, n_actions)`` from ``tokens`` ``(B, N, width)``, token ``me`` the
+        observer's. The other tokens are read as a set: their order does not matter."""
+        query = self.query(tokens[:, me])
+        mixed, _ = self.attend(query[:, None], tokens, tokens, need_weights=False)
+        z = torch.cat([query, mixed[:, 0]], dim=1)
+        if not self.dueling:
+            return self.head(z)
+        adv = self.advantage(z)
+        # Subtracting the mean advantage makes V and A identifiable without moving the argmax.
+        return self.value(z) + adv - adv.mean(dim=1, keepdim=True)
+
+    def forward(self, x: Tensor) -> Tensor:
+        cols = -(-(x.shape[-1] // 2) // 2)
+        return self.read(self.tokens(x), self.me[0] * cols + self.me[1])

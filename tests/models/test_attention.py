@@ -1,0 +1,65 @@
+"""The ego-attention map reader (``vfan.reader: attention``)."""
+
+import pytest
+import torch
+
+from latentdrive.config import ConfigError, validate
+from latentdrive.models.attention import MapAttentionBody, token_grid
+from latentdrive.models.vfan import QNetwork, VFANConfig
+from latentdrive.rl.config import PolicyTrainConfig
+
+SHAPE = (4, 4, 32, 64)
+
+
+def test_the_token_grid_lies_where_the_map_draws_its_cells():
+    # Default map: 32 x 64 cells of 1.5 m, 32 m behind the observer. Tokens are 6 m squares.
+    grid, me = token_grid(32, 64, 1.5, 32.0)
+    assert grid.shape == (8 * 16, 2)
+    # First token: centre 3 m into the map, i.e. 29 m behind and 21 m to the left, / 50.
+    assert grid[0].tolist() == pytest.approx([-0.58, -0.42])
+    # Row-major: the second token is 6 m further ahead, the 17th 6 m further right.
+    assert grid[1].tolist() == pytest.approx([-0.46, -0.42])
+    assert grid[16].tolist() == pytest.approx([-0.58, -0.30])
+    # The observer (32 m from the back edge, on the middle line) is in row 4, column 5:
+    # columns 5 spans 30-36 m, row 4 the first 6 m to its right.
+    assert me == (4, 5)
+    assert grid[4 * 16 + 5].tolist() == pytest.approx([0.02, 0.06])
+
+
+def test_odd_sized_maps_get_as_many_positions_as_the_stem_gives():
+    body = MapAttentionBody((4, 2, 30, 45), 1.5, 10.0)
+    assert body(torch.rand(3, 4, 2, 30, 45)).shape == (3, 5)
+
+
+def test_the_other_cells_are_read_as_a_set():
+    torch.manual_seed(0)
+    body = MapAttentionBody(SHAPE, 1.5, 32.0).eval()
+    tokens = body.tokens(torch.rand(2, *SHAPE))
+    me = 4 * 16 + 5
+    perm = torch.randperm(tokens.shape[1])
+    moved = tokens[:, perm]
+    new_me = int((perm == me).nonzero())
+    with torch.no_grad():
+        assert torch.allclose(body.read(tokens, me), body.read(moved, new_me), atol=1e-5)
+        # ...while what a cell holds does matter.
+        changed = tokens.clone()
+        changed[:, 0] += 5.0
+        assert not torch.allclose(body.read(tokens, me), body.read(changed, me), atol=1e-4)
+
+
+@pytest.mark.parametrize("dueling", [False, True])
+def test_a_raw_network_with_the_reader_gives_five_q_values(dueling):
+    net = QNetwork(VFANConfig(reader="attention"), "raw", SHAPE, dueling=dueling, geometry=(1.5, 32.0))
+    q = net(torch.rand(5, *SHAPE))
+    assert q.shape == (5, 5)
+    q.sum().backward()
+    assert all(p.grad is not None for p in net.parameters())
+
+
+def test_the_reader_is_refused_where_it_has_no_map_to_read():
+    with pytest.raises(ValueError, match="needs the map's geometry"):
+        QNetwork(VFANConfig(reader="attention"), "raw", SHAPE)
+    with pytest.raises(ConfigError, match="reads raw maps"):
+        validate(PolicyTrainConfig, {"mode": "end-to-end", "vfan": {"reader": "attention"}})
+    with pytest.raises(ConfigError, match="does not divide"):
+        validate(VFANConfig, {"attention_width": 64, "attention_heads": 5})

@@ -1,0 +1,58 @@
+"""``scripts/state_dqn.py``: its settings and its ε-greedy policy over exact states."""
+
+import runpy
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from latentdrive.config import ConfigError
+from latentdrive.evaluate.run import evaluate_policy
+
+SCRIPT = Path(__file__).resolve().parents[2] / "scripts" / "state_dqn.py"
+MOD = runpy.run_path(str(SCRIPT), run_name="state_dqn")
+
+
+def test_settings_reach_the_learner_and_the_reward_and_map_only_ones_are_refused():
+    dqn, reward = MOD["configs"](["dqn.n_step=3", "reward.speed=0.05", "dqn.updates_per_transition=1"])
+    assert (dqn.n_step, dqn.updates_per_transition, reward.speed) == (3, 1.0, 0.05)
+    with pytest.raises(ConfigError, match="augment_shift"):
+        MOD["configs"](["dqn.augment_shift=2"])
+    with pytest.raises(ConfigError, match=r"expected dqn\.KEY=VALUE"):
+        MOD["configs"](["planner.depth=1"])
+    with pytest.raises(ConfigError, match=r"dqn\.n_step"):
+        MOD["configs"](["dqn.n_step=0"])
+
+
+class _Prefers:
+    """A 'network' whose Q-values always rank action ``a`` first."""
+
+    def __init__(self, a: int) -> None:
+        self.a = a
+
+    def __call__(self, x: torch.Tensor) -> torch.Tensor:
+        q = torch.zeros(x.shape[0], 5)
+        q[:, self.a] = 1.0
+        return q
+
+
+def _played(eps: float) -> np.ndarray:
+    seen: list[np.ndarray] = []
+    policy = MOD["StatePolicy"](_Prefers(3), 4, 80.0, True, np.random.default_rng(0), lambda: eps)
+
+    def make():
+        def act(inp):
+            a = policy(inp)
+            seen.append(a[inp.active])
+            assert policy.latest is not None and policy.latest.shape[:2] == a.shape
+            return a
+        return act
+
+    evaluate_policy(make, ["roundabout"], 4, envs=4, observation=MOD["TINY_MAP"])
+    return np.concatenate(seen)
+
+
+def test_the_greedy_policy_takes_the_best_action_and_exploration_all_of_them():
+    assert set(_played(0.0)) == {3}
+    assert set(_played(1.0)) == {0, 1, 2, 3, 4}
