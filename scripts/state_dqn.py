@@ -23,7 +23,7 @@ the rule driver play the test set, the first ``--episodes`` evaluation episodes 
 of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usage::
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
-        [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route]
+        [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
 
 ``--set`` takes :class:`~latentdrive.rl.dqn.DQNConfig` and
@@ -71,6 +71,17 @@ mlp: Callable[[int, int], nn.Module] = _COPY["mlp"]
 #: The map the env renders is not read here: the smallest one keeps rendering cheap.
 TINY_MAP = {"height": 4, "width": 4, "frames": 1, "behind": 0.0}
 REFUSED = ("augment_shift", "explore_rule", "dueling")
+#: The AV's own features that place it in the world (cos and sin of its heading, world x and
+#: y, the share of the episode gone): ``--no-pose`` zeroes them.
+POSE = slice(2, 7)
+
+
+def features(inp: PolicyInput, specs: list[Any], k: int, radius: float, route: bool, pose: bool) -> NDArray[np.float32]:
+    """:func:`batch_features` ``(num_envs, n_av, F)``; without ``pose``, :data:`POSE` zeroed."""
+    x = batch_features(inp, specs, k, radius, route)
+    if not pose:
+        x[..., POSE] = 0.0
+    return x
 
 
 class StatePolicy:
@@ -78,13 +89,15 @@ class StatePolicy:
     keeps the latest step's features ``(num_envs, n_av, F)`` in :attr:`latest`."""
 
     def __init__(self, net: nn.Module, k: int, radius: float, route: bool,
-                 rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0) -> None:
+                 rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
+                 pose: bool = True) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
+        self.pose = pose
         self.latest: NDArray[np.float32] | None = None
 
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
         specs = inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios]
-        x = batch_features(inp, list(specs), self.k, self.radius, self.route)
+        x = features(inp, list(specs), self.k, self.radius, self.route, self.pose)
         self.latest = x
         with torch.no_grad():
             q = self.net(torch.from_numpy(x.reshape(-1, x.shape[-1])))
@@ -99,7 +112,7 @@ class StatePolicy:
 def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], episodes: int,
              reset_seed: int | None = None) -> list[Any]:
     def make() -> Policy:
-        return StatePolicy(net, args.neighbours, args.radius, not args.no_route)
+        return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose)
 
     net.eval()
     try:
@@ -128,7 +141,8 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward
                                                  (n_in,)))
     window = NStepWindow(cfg.n_step, cfg.gamma, slots)
     transitions = updates = 0
-    policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps))
+    policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
+                         pose=not args.no_pose)
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -154,9 +168,9 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward
         ei, ai = np.nonzero(ag.acting)
         # Where each transition leads: the Scene the step led to (the ended episode's last
         # where it ended); exact states carry no noise, so this is what the policy reads there.
-        after = batch_features(PolicyInput(rec.obs_after, rec.scenes, ag.active, np.asarray(
+        after = features(PolicyInput(rec.obs_after, rec.scenes, ag.active, np.asarray(
             [s.name for s in vec.simulator.specs], dtype=object), vec.simulator), list(vec.simulator.specs),
-            args.neighbours, args.radius, route)
+            args.neighbours, args.radius, route, not args.no_pose)
         next_ids = replay.store.add(after[ei, ai], cur[ei, ai])
         # Terminated (crash, mission done) does not bootstrap; cut off (a partner crashed,
         # time ran out) does: the n-step window keeps them apart (rl.nstep).
@@ -216,6 +230,9 @@ def main() -> int:
     ap.add_argument("--neighbours", type=int, default=12)
     ap.add_argument("--radius", type=float, default=80.0, help="metres")
     ap.add_argument("--no-route", action="store_true", help="leave the AV's planned route out of its features")
+    ap.add_argument("--no-pose", action="store_true",
+                    help="zero the AV's world heading and position and the share of the episode gone, which "
+                         "an ego-centred map does not show")
     ap.add_argument("--arch", choices=("attention", "mlp"), default="attention")
     ap.add_argument("--hidden", type=int, default=256)
     ap.add_argument("--eval-every", type=int, default=25_000, help="agent-transitions between validations (0: at the end only)")
