@@ -28,8 +28,9 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
 ``--set`` takes :class:`~latentdrive.rl.dqn.DQNConfig` and
 :class:`~latentdrive.scenarios.spec.RewardConfig` fields, as ``train-policy --set`` does; the
-defaults are theirs. Only ``augment_shift``, ``explore_rule`` and ``dueling`` are refused
-(they act on maps, the rule driver's choice, or the VFAN's head).
+defaults are theirs. ``augment_shift``, ``explore_rule``, ``dueling`` and the prioritized
+replay's settings are refused (they act on maps, the rule driver's choice, the VFAN's head,
+or a replay this script does not build).
 """
 
 from __future__ import annotations
@@ -70,7 +71,8 @@ mlp: Callable[[int, int], nn.Module] = _COPY["mlp"]
 
 #: The map the env renders is not read here: the smallest one keeps rendering cheap.
 TINY_MAP = {"height": 4, "width": 4, "frames": 1, "behind": 0.0}
-REFUSED = ("augment_shift", "explore_rule", "dueling")
+REFUSED = ("augment_shift", "explore_rule", "dueling", "prioritized", "priority_alpha", "priority_beta",
+           "priority_eps")
 #: The AV's own features that place it in the world (cos and sin of its heading, world x and
 #: y, the share of the episode gone): ``--no-pose`` zeroes them.
 POSE = slice(2, 7)

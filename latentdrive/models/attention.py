@@ -36,14 +36,18 @@ STRIDE = 4
 
 
 def token_grid(height: int, width: int, resolution: float, behind: float) -> tuple[Tensor, tuple[int, int]]:
-    """The centres of the stem's token cells relative to the observer, metres / 50, along
-    (x, ahead) and across (y, to the right: row order) its heading, ``(H/4 · W/4, 2)``
-    float32 in row-major order; and the (row, column) of the token holding the observer.
+    """Where the stem's tokens stand, relative to the observer, metres / 50, along (x,
+    ahead) and across (y, to the right: row order) its heading, ``(rows · cols, 2)``
+    float32 in row-major order; and the (row, column) of the observer's token.
 
     The frame's columns run from ``behind`` metres behind the observer forward, its rows
     across the heading with the observer on the line between the two middle rows
-    (:func:`latentdrive.observe.velocitymap.render_frame`); a token covers ``STRIDE`` cells
-    of ``resolution`` metres on each side."""
+    (:func:`latentdrive.observe.velocitymap.render_frame`). Token ``j`` stands for the
+    block of cells ``STRIDE·j`` to ``STRIDE·j + 3`` that the strided stem reduces to it, and
+    its position is that block's centre. (With the stem's padding, its receptive field,
+    cells ``4j − 3`` to ``4j + 4``, is centred one cell further back: the same offset for
+    every token, which the position layer's bias absorbs.) The observer's token is the
+    block that holds the observer, clipped to the grid."""
     # Each stride-2 convolution (kernel 4 padding 1, then kernel 3 padding 1) gives
     # floor(n/2), then ceil(n/2), positions.
     rows, cols = -(-(height // 2) // 2), -(-(width // 2) // 2)
@@ -78,6 +82,7 @@ class MapAttentionBody(nn.Module):
             nn.Conv2d(width // 2, width, kernel_size=3, stride=2, padding=1), nn.ReLU(),
         )
         grid, self.me = token_grid(h, w, resolution, behind)
+        self.rows, self.cols = -(-(h // 2) // 2), -(-(w // 2) // 2)
         self.grid: Tensor
         self.register_buffer("grid", grid, persistent=False)
         self.position = nn.Linear(2, width)
@@ -94,7 +99,7 @@ class MapAttentionBody(nn.Module):
         """Maps ``(B, C, T, H, W)`` → tokens ``(B, N, width)``, cell features plus position."""
         b, c, t, h, w = x.shape
         f = self.stem(x.reshape(b, c * t, h, w))  # (B, width, rows, cols)
-        if f.shape[2] * f.shape[3] != self.grid.shape[0]:
+        if (f.shape[2], f.shape[3]) != (self.rows, self.cols):
             raise ValueError(f"maps of {h} × {w} cells, not those this reader was built for")
         return f.flatten(2).transpose(1, 2) + self.position(self.grid.to(f.dtype))
 
@@ -111,5 +116,4 @@ class MapAttentionBody(nn.Module):
         return self.value(z) + adv - adv.mean(dim=1, keepdim=True)
 
     def forward(self, x: Tensor) -> Tensor:
-        cols = -(-(x.shape[-1] // 2) // 2)
-        return self.read(self.tokens(x), self.me[0] * cols + self.me[1])
+        return self.read(self.tokens(x), self.me[0] * self.cols + self.me[1])

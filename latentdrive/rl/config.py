@@ -87,6 +87,9 @@ class PolicyTrainConfig(Config):
         if self.vfan.reader == "attention" and self.mode != "raw":
             raise ValueError(f"vfan.reader 'attention' reads raw maps: mode {self.mode!r} feeds the body latents "
                              "(use it with mode 'raw')")
+        if self.vfan.reader == "attention" and self.dqn.augment_shift > 0:
+            raise ValueError("vfan.reader 'attention' queries the token that holds the observer: shifting the maps "
+                             "(dqn.augment_shift) would move the observer off it")
         if self.dqn.augment_shift > 0 and self.mode not in ("raw", "end-to-end"):
             raise ValueError(f"dqn.augment_shift shifts maps: mode {self.mode!r} learns from stored latents "
                              "(use it with mode 'raw' or 'end-to-end')")

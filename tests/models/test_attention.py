@@ -12,7 +12,8 @@ SHAPE = (4, 4, 32, 64)
 
 
 def test_the_token_grid_lies_where_the_map_draws_its_cells():
-    # Default map: 32 x 64 cells of 1.5 m, 32 m behind the observer. Tokens are 6 m squares.
+    # Default map: 32 x 64 cells of 1.5 m, 32 m behind the observer. Token j stands for the
+    # block of cells 4j..4j+3, a 6 m square, and sits at its centre.
     grid, me = token_grid(32, 64, 1.5, 32.0)
     assert grid.shape == (8 * 16, 2)
     # First token: centre 3 m into the map, i.e. 29 m behind and 21 m to the left, / 50.
@@ -21,7 +22,7 @@ def test_the_token_grid_lies_where_the_map_draws_its_cells():
     assert grid[1].tolist() == pytest.approx([-0.46, -0.42])
     assert grid[16].tolist() == pytest.approx([-0.58, -0.30])
     # The observer (32 m from the back edge, on the middle line) is in row 4, column 5:
-    # columns 5 spans 30-36 m, row 4 the first 6 m to its right.
+    # column 5's block spans 30-36 m from the back edge, row 4's the first 6 m to its right.
     assert me == (4, 5)
     assert grid[4 * 16 + 5].tolist() == pytest.approx([0.02, 0.06])
 
@@ -45,6 +46,11 @@ def test_the_other_cells_are_read_as_a_set():
         changed = tokens.clone()
         changed[:, 0] += 5.0
         assert not torch.allclose(body.read(tokens, me), body.read(changed, me), atol=1e-4)
+        # ...and so does where it is: the same maps read with the cells' positions swapped.
+        x = torch.rand(2, *SHAPE)
+        before = body(x)
+        body.grid = body.grid.flip(0)
+        assert not torch.allclose(before, body(x), atol=1e-4)
 
 
 @pytest.mark.parametrize("dueling", [False, True])
@@ -61,5 +67,9 @@ def test_the_reader_is_refused_where_it_has_no_map_to_read():
         QNetwork(VFANConfig(reader="attention"), "raw", SHAPE)
     with pytest.raises(ConfigError, match="reads raw maps"):
         validate(PolicyTrainConfig, {"mode": "end-to-end", "vfan": {"reader": "attention"}})
+    with pytest.raises(ConfigError, match="augment_shift"):
+        validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "attention"}, "dqn": {"augment_shift": 2}})
+    with pytest.raises(ValueError, match="not those this reader was built for"):
+        MapAttentionBody(SHAPE, 1.5, 32.0)(torch.rand(1, 4, 4, 64, 32))
     with pytest.raises(ConfigError, match="does not divide"):
         validate(VFANConfig, {"attention_width": 64, "attention_heads": 5})

@@ -21,6 +21,8 @@ def test_settings_reach_the_learner_and_the_reward_and_map_only_ones_are_refused
         MOD["configs"](["dqn.augment_shift=2"])
     with pytest.raises(ConfigError, match=r"expected dqn\.KEY=VALUE"):
         MOD["configs"](["planner.depth=1"])
+    with pytest.raises(ConfigError, match="prioritized"):
+        MOD["configs"](["dqn.prioritized=true"])
     with pytest.raises(ConfigError, match=r"dqn\.n_step"):
         MOD["configs"](["dqn.n_step=0"])
 
@@ -56,3 +58,29 @@ def _played(eps: float) -> np.ndarray:
 def test_the_greedy_policy_takes_the_best_action_and_exploration_all_of_them():
     assert set(_played(0.0)) == {3}
     assert set(_played(1.0)) == {0, 1, 2, 3, 4}
+
+
+def test_no_pose_zeroes_the_avs_world_heading_position_and_time_only():
+    from latentdrive.observe.state import state_features
+    from latentdrive.rollout import rollout
+    from latentdrive.scenarios import get_spec
+    from latentdrive.vec import make_vec
+
+    seen = []
+
+    def idle(inp):
+        seen.append(inp)
+        return np.zeros(inp.active.shape, dtype=np.int64)
+
+    vec = make_vec("roundabout", 2, observation=MOD["TINY_MAP"])
+    for k, _ in enumerate(rollout(vec, idle, seed=3)):
+        if k == 3:  # off the start, so that time and speeds are not zero
+            break
+    inp, spec = seen[-1], get_spec("roundabout")
+    full = MOD["features"](inp, [spec, spec], 12, 80.0, True, True)
+    bare = MOD["features"](inp, [spec, spec], 12, 80.0, True, False)
+    assert np.array_equal(full[0, 0], state_features(inp.scenes[0], 0, spec.duration, 12, 80.0, True))
+    pose = np.zeros(full.shape[-1], dtype=bool)
+    pose[2:7] = True  # cos, sin of the heading, world x, y, share of the episode gone
+    assert np.all(np.any(full[..., pose] != 0, axis=-1)) and np.all(bare[..., pose] == 0)
+    assert np.array_equal(full[..., ~pose], bare[..., ~pose])
