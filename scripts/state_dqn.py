@@ -23,7 +23,7 @@ the rule driver play the test set, the first ``--episodes`` evaluation episodes 
 of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usage::
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
-        [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose]
+        [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--view-box]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
 
 ``--set`` takes :class:`~latentdrive.rl.dqn.DQNConfig` and
@@ -78,11 +78,25 @@ REFUSED = ("augment_shift", "explore_rule", "dueling", "prioritized", "priority_
 POSE = slice(2, 7)
 
 
-def features(inp: PolicyInput, specs: list[Any], k: int, radius: float, route: bool, pose: bool) -> NDArray[np.float32]:
-    """:func:`batch_features` ``(num_envs, n_av, F)``; without ``pose``, :data:`POSE` zeroed."""
+#: The default VelocityMap's view in the AV's frame, metres: behind, ahead, to each side.
+MAP_VIEW = (32.0, 64.0, 24.0)
+
+
+def features(inp: PolicyInput, specs: list[Any], k: int, radius: float, route: bool, pose: bool,
+             view_box: tuple[float, float, float] | None = None) -> NDArray[np.float32]:
+    """:func:`batch_features` ``(num_envs, n_av, F)``; without ``pose``, :data:`POSE` zeroed;
+    with ``view_box`` (metres behind, ahead, to each side), the neighbours outside it made
+    absent (zero rows)."""
     x = batch_features(inp, specs, k, radius, route)
     if not pose:
         x[..., POSE] = 0.0
+    if view_box is not None:
+        start = x.shape[-1] - k * PER_NEIGHBOUR
+        rows = x[..., start:].reshape(*x.shape[:2], k, PER_NEIGHBOUR).copy()
+        ahead, right = rows[..., 0] * 50.0, rows[..., 1] * 50.0
+        behind, front, side = view_box
+        rows[(ahead < -behind) | (ahead > front) | (np.abs(right) > side)] = 0.0
+        x[..., start:] = rows.reshape(*x.shape[:2], -1)
     return x
 
 
@@ -92,14 +106,14 @@ class StatePolicy:
 
     def __init__(self, net: nn.Module, k: int, radius: float, route: bool,
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
-                 pose: bool = True) -> None:
+                 pose: bool = True, view_box: tuple[float, float, float] | None = None) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
-        self.pose = pose
+        self.pose, self.view_box = pose, view_box
         self.latest: NDArray[np.float32] | None = None
 
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
         specs = inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios]
-        x = features(inp, list(specs), self.k, self.radius, self.route, self.pose)
+        x = features(inp, list(specs), self.k, self.radius, self.route, self.pose, self.view_box)
         self.latest = x
         with torch.no_grad():
             q = self.net(torch.from_numpy(x.reshape(-1, x.shape[-1])))
@@ -114,7 +128,8 @@ class StatePolicy:
 def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], episodes: int,
              reset_seed: int | None = None) -> list[Any]:
     def make() -> Policy:
-        return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose)
+        return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
+                           view_box=args.view_box)
 
     net.eval()
     try:
@@ -144,7 +159,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward
     window = NStepWindow(cfg.n_step, cfg.gamma, slots)
     transitions = updates = 0
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
-                         pose=not args.no_pose)
+                         pose=not args.no_pose, view_box=args.view_box)
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -172,7 +187,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward
         # where it ended); exact states carry no noise, so this is what the policy reads there.
         after = features(PolicyInput(rec.obs_after, rec.scenes, ag.active, np.asarray(
             [s.name for s in vec.simulator.specs], dtype=object), vec.simulator), list(vec.simulator.specs),
-            args.neighbours, args.radius, route, not args.no_pose)
+            args.neighbours, args.radius, route, not args.no_pose, args.view_box)
         next_ids = replay.store.add(after[ei, ai], cur[ei, ai])
         # Terminated (crash, mission done) does not bootstrap; cut off (a partner crashed,
         # time ran out) does: the n-step window keeps them apart (rl.nstep).
@@ -235,6 +250,9 @@ def main() -> int:
     ap.add_argument("--no-pose", action="store_true",
                     help="zero the AV's world heading and position and the share of the episode gone, which "
                          "an ego-centred map does not show")
+    ap.add_argument("--view-box", nargs="?", const=",".join(f"{v:g}" for v in MAP_VIEW), metavar="BEHIND,AHEAD,SIDE",
+                    help="see only the neighbours inside this box, metres (alone: the default map's view, "
+                         "32 m behind, 64 m ahead, 24 m to each side)")
     ap.add_argument("--arch", choices=("attention", "mlp"), default="attention")
     ap.add_argument("--hidden", type=int, default=256)
     ap.add_argument("--eval-every", type=int, default=25_000, help="agent-transitions between validations (0: at the end only)")
@@ -248,6 +266,14 @@ def main() -> int:
             ap.error(f"--{name.replace('_', '-')} must be at least 1")
     if args.eval_every < 0:
         ap.error("--eval-every must be at least 0")
+    if args.view_box is not None:
+        try:
+            box = tuple(float(v) for v in args.view_box.split(","))
+        except ValueError:
+            box = ()
+        if len(box) != 3 or min(box) < 0:
+            ap.error(f"--view-box takes three distances in metres, BEHIND,AHEAD,SIDE, got {args.view_box!r}")
+        args.view_box = box
     try:
         cfg, reward = configs(args.set)
     except ConfigError as err:

@@ -84,3 +84,34 @@ def test_no_pose_zeroes_the_avs_world_heading_position_and_time_only():
     pose[2:7] = True  # cos, sin of the heading, world x, y, share of the episode gone
     assert np.all(np.any(full[..., pose] != 0, axis=-1)) and np.all(bare[..., pose] == 0)
     assert np.array_equal(full[..., ~pose], bare[..., ~pose])
+
+
+def test_a_view_box_drops_the_neighbours_outside_it_and_keeps_the_others():
+    from latentdrive.observe.state import PER_NEIGHBOUR
+    from latentdrive.rollout import rollout
+    from latentdrive.scenarios import get_spec
+    from latentdrive.vec import make_vec
+
+    seen = []
+
+    def idle(inp):
+        seen.append(inp)
+        return np.zeros(inp.active.shape, dtype=np.int64)
+
+    vec = make_vec("intersection", 4, observation=MOD["TINY_MAP"])
+    for k, _ in enumerate(rollout(vec, idle, seed=5)):
+        if k == 4:
+            break
+    inp, spec = seen[-1], get_spec("intersection")
+    k = 12
+    full = MOD["features"](inp, [spec] * 4, k, 80.0, True, True)
+    boxed = MOD["features"](inp, [spec] * 4, k, 80.0, True, True, (10.0, 20.0, 5.0))
+    start = full.shape[-1] - k * PER_NEIGHBOUR
+    rows = full[..., start:].reshape(-1, k, PER_NEIGHBOUR)
+    kept = boxed[..., start:].reshape(-1, k, PER_NEIGHBOUR)
+    ahead, right = rows[..., 0] * 50, rows[..., 1] * 50
+    inside = (ahead >= -10) & (ahead <= 20) & (np.abs(right) <= 5) & (rows[..., -1] == 1)
+    outside = (rows[..., -1] == 1) & ~inside
+    assert inside.any() and outside.any()  # the case is tested both ways
+    assert np.array_equal(kept[inside], rows[inside]) and np.all(kept[outside] == 0)
+    assert np.array_equal(boxed[..., :start], full[..., :start])
