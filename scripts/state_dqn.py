@@ -55,7 +55,7 @@ from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.report import compare, format_compare, format_table, policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.observe.state import PER_NEIGHBOUR, state_size
-from latentdrive.rl.dqn import DQNConfig, epsilon, soft_update, update, updates_owed
+from latentdrive.rl.dqn import DQNConfig, epsilon, target_step, update, updates_owed
 from latentdrive.rl.nstep import NStepWindow
 from latentdrive.rl.replay import LatentStore, Replay
 from latentdrive.rollout import Policy, PolicyInput, rollout
@@ -180,14 +180,15 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward
     next_eval = args.eval_every or args.steps + 1
     bar = tqdm(total=args.steps, desc="agent-transitions", unit="tr", mininterval=15)
     loss = float("nan")
+    specs = list(vec.simulator.specs)
+    names = np.asarray([s.name for s in specs], dtype=object)
     for rec in rollout(vec, act, seed=train_reset_seed(args.seed, 0)):
         ag = rec.agents
         ei, ai = np.nonzero(ag.acting)
         # Where each transition leads: the Scene the step led to (the ended episode's last
         # where it ended); exact states carry no noise, so this is what the policy reads there.
-        after = features(PolicyInput(rec.obs_after, rec.scenes, ag.active, np.asarray(
-            [s.name for s in vec.simulator.specs], dtype=object), vec.simulator), list(vec.simulator.specs),
-            args.neighbours, args.radius, route, not args.no_pose, args.view_box)
+        after = features(PolicyInput(rec.obs_after, rec.scenes, ag.active, names, vec.simulator), specs,
+                         args.neighbours, args.radius, route, not args.no_pose, args.view_box)
         next_ids = replay.store.add(after[ei, ai], cur[ei, ai])
         # Terminated (crash, mission done) does not bootstrap; cut off (a partner crashed,
         # time ran out) does: the n-step window keeps them apart (rl.nstep).
@@ -202,10 +203,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward
             stats = update(net, target, opt, replay.sample(rng, cfg.batch_size), cfg)
             loss = stats.loss
             updates += 1
-            if cfg.tau > 0:
-                soft_update(target, net, cfg.tau)
-            elif updates % cfg.target_update == 0:
-                target.load_state_dict(net.state_dict())
+            target_step(target, net, cfg, updates)
         bar.set_postfix(loss=f"{loss:.3f}", eps=f"{epsilon(cfg, transitions, args.steps):.2f}", refresh=False)
         if transitions >= next_eval or transitions >= args.steps:
             rate = float(np.mean([o.failed for o in evaluate(net, args, scenarios, args.eval_episodes,

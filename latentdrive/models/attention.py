@@ -29,10 +29,17 @@ from torch import Tensor, nn
 
 from latentdrive.actions import N_ACTIONS
 
-__all__ = ["MapAttentionBody", "token_grid"]
+__all__ = ["MapAttentionBody", "token_grid", "token_shape"]
 
 #: Downsampling of the stem (two stride-2 convolutions).
 STRIDE = 4
+
+
+def token_shape(height: int, width: int) -> tuple[int, int]:
+    """Rows and columns of tokens the stem makes of an ``height × width`` map: each stride-2
+    convolution (kernel 4 padding 1, then kernel 3 padding 1) gives floor(n/2), then
+    ceil(n/2), positions."""
+    return -(-(height // 2) // 2), -(-(width // 2) // 2)
 
 
 def token_grid(height: int, width: int, resolution: float, behind: float) -> tuple[Tensor, tuple[int, int]]:
@@ -48,9 +55,7 @@ def token_grid(height: int, width: int, resolution: float, behind: float) -> tup
     cells ``4j − 3`` to ``4j + 4``, is centred one cell further back: the same offset for
     every token, which the position layer's bias absorbs.) The observer's token is the
     block that holds the observer, clipped to the grid."""
-    # Each stride-2 convolution (kernel 4 padding 1, then kernel 3 padding 1) gives
-    # floor(n/2), then ceil(n/2), positions.
-    rows, cols = -(-(height // 2) // 2), -(-(width // 2) // 2)
+    rows, cols = token_shape(height, width)
     size = STRIDE * resolution
     x = (torch.arange(cols, dtype=torch.float64) + 0.5) * size - behind
     y = (torch.arange(rows, dtype=torch.float64) + 0.5) * size - height * resolution / 2.0
@@ -82,7 +87,7 @@ class MapAttentionBody(nn.Module):
             nn.Conv2d(width // 2, width, kernel_size=3, stride=2, padding=1), nn.ReLU(),
         )
         grid, self.me = token_grid(h, w, resolution, behind)
-        self.rows, self.cols = -(-(h // 2) // 2), -(-(w // 2) // 2)
+        self.rows, self.cols = token_shape(h, w)
         self.grid: Tensor
         self.register_buffer("grid", grid, persistent=False)
         self.position = nn.Linear(2, width)

@@ -19,7 +19,7 @@ from latentdrive.config import Config
 from latentdrive.rl.replay import Batch
 from latentdrive.runtime import autocast
 
-__all__ = ["DQNConfig", "UpdateStats", "epsilon", "linear_decay", "priority_beta", "soft_update", "td_targets", "update",
+__all__ = ["DQNConfig", "UpdateStats", "epsilon", "linear_decay", "priority_beta", "soft_update", "target_step", "td_targets", "update",
            "updates_owed"]
 
 #: Largest denominator of ``updates_per_transition`` (the ratio is kept as an exact fraction).
@@ -162,6 +162,15 @@ def update(online: nn.Module, target: nn.Module, optimizer: torch.optim.Optimize
     nn.utils.clip_grad_norm_(params, cfg.grad_clip)
     optimizer.step()
     return UpdateStats(float(loss.detach()), (q.detach() - y).abs())
+
+
+def target_step(target: nn.Module, online: nn.Module, cfg: DQNConfig, updates: int) -> None:
+    """The target network's move after learner update number ``updates`` (counted from 1):
+    a Polyak step when ``cfg.tau`` > 0, else a hard copy every ``cfg.target_update`` updates."""
+    if cfg.tau > 0:
+        soft_update(target, online, cfg.tau)
+    elif updates % cfg.target_update == 0:
+        target.load_state_dict(online.state_dict())
 
 
 @torch.no_grad()

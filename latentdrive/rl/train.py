@@ -42,7 +42,7 @@ from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.augment import random_shift
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
-from latentdrive.rl.dqn import epsilon, priority_beta, soft_update, update, updates_owed
+from latentdrive.rl.dqn import epsilon, priority_beta, target_step, update, updates_owed
 from latentdrive.rl.imitate import (
     ExpertLabels,
     dagger_policy,
@@ -235,10 +235,7 @@ class Learner:
         if batch.slots is not None and d.prioritized:
             self.replay.update_priorities(batch.slots, stats.td_error.cpu().numpy())
         self.updates += 1
-        if d.tau > 0:
-            soft_update(self.target, self.net, d.tau)
-        elif self.updates % d.target_update == 0:
-            self.target.load_state_dict(self.net.state_dict())
+        target_step(self.target, self.net, d, self.updates)
 
     def _label_weights(self) -> torch.Tensor:
         """The class weights of the labels in the replay, recounted only when it changed

@@ -60,10 +60,10 @@ def test_the_greedy_policy_takes_the_best_action_and_exploration_all_of_them():
     assert set(_played(1.0)) == {0, 1, 2, 3, 4}
 
 
-def test_no_pose_zeroes_the_avs_world_heading_position_and_time_only():
-    from latentdrive.observe.state import state_features
+def _input_after(scenario: str, envs: int, seed: int, steps: int):
+    """What a policy sees after ``steps`` Idle steps of ``envs`` environments of ``scenario``
+    (off the start, so that time, speeds and positions are not those of a reset)."""
     from latentdrive.rollout import rollout
-    from latentdrive.scenarios import get_spec
     from latentdrive.vec import make_vec
 
     seen = []
@@ -72,11 +72,17 @@ def test_no_pose_zeroes_the_avs_world_heading_position_and_time_only():
         seen.append(inp)
         return np.zeros(inp.active.shape, dtype=np.int64)
 
-    vec = make_vec("roundabout", 2, observation=MOD["TINY_MAP"])
-    for k, _ in enumerate(rollout(vec, idle, seed=3)):
-        if k == 3:  # off the start, so that time and speeds are not zero
+    for k, _ in enumerate(rollout(make_vec(scenario, envs, observation=MOD["TINY_MAP"]), idle, seed=seed)):
+        if k == steps:
             break
-    inp, spec = seen[-1], get_spec("roundabout")
+    return seen[-1]
+
+
+def test_no_pose_zeroes_the_avs_world_heading_position_and_time_only():
+    from latentdrive.observe.state import state_features
+    from latentdrive.scenarios import get_spec
+
+    inp, spec = _input_after("roundabout", 2, 3, 3), get_spec("roundabout")
     full = MOD["features"](inp, [spec, spec], 12, 80.0, True, True)
     bare = MOD["features"](inp, [spec, spec], 12, 80.0, True, False)
     assert np.array_equal(full[0, 0], state_features(inp.scenes[0], 0, spec.duration, 12, 80.0, True))
@@ -88,21 +94,9 @@ def test_no_pose_zeroes_the_avs_world_heading_position_and_time_only():
 
 def test_a_view_box_drops_the_neighbours_outside_it_and_keeps_the_others():
     from latentdrive.observe.state import PER_NEIGHBOUR
-    from latentdrive.rollout import rollout
     from latentdrive.scenarios import get_spec
-    from latentdrive.vec import make_vec
 
-    seen = []
-
-    def idle(inp):
-        seen.append(inp)
-        return np.zeros(inp.active.shape, dtype=np.int64)
-
-    vec = make_vec("intersection", 4, observation=MOD["TINY_MAP"])
-    for k, _ in enumerate(rollout(vec, idle, seed=5)):
-        if k == 4:
-            break
-    inp, spec = seen[-1], get_spec("intersection")
+    inp, spec = _input_after("intersection", 4, 5, 4), get_spec("intersection")
     k = 12
     full = MOD["features"](inp, [spec] * 4, k, 80.0, True, True)
     boxed = MOD["features"](inp, [spec] * 4, k, 80.0, True, True, (10.0, 20.0, 5.0))

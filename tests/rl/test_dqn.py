@@ -123,3 +123,21 @@ def test_importance_weights_scale_each_samples_loss():
     assert plain.loss == pytest.approx(float(per_sample.mean()), rel=1e-5)
     assert weighted.loss == pytest.approx(float(per_sample[0] / 4), rel=1e-5)
     assert weighted.td_error.shape == (4,) and (weighted.td_error >= 0).all()
+
+
+def test_the_target_moves_by_polyak_steps_or_hard_copies_every_target_update():
+    from latentdrive.rl.dqn import target_step
+
+    online, target = nn.Linear(1, 1, bias=False), nn.Linear(1, 1, bias=False)
+    with torch.no_grad():
+        online.weight.fill_(1.0)
+        target.weight.fill_(0.0)
+    hard = DQNConfig(target_update=3)
+    target_step(target, online, hard, 2)
+    assert float(target.weight) == 0.0  # not yet due
+    target_step(target, online, hard, 3)
+    assert float(target.weight) == 1.0
+    with torch.no_grad():
+        target.weight.fill_(0.0)
+    target_step(target, online, DQNConfig(tau=0.25), 1)
+    assert float(target.weight) == pytest.approx(0.25)
