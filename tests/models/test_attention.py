@@ -53,9 +53,26 @@ def test_the_other_cells_are_read_as_a_set():
         assert not torch.allclose(before, body(x), atol=1e-4)
 
 
-@pytest.mark.parametrize("dueling", [False, True])
-def test_a_raw_network_with_the_reader_gives_five_q_values(dueling):
-    net = QNetwork(VFANConfig(reader="attention"), "raw", SHAPE, dueling=dueling, geometry=(1.5, 32.0))
+@pytest.mark.parametrize("layers", [0, 1])
+def test_self_attention_layers_let_each_token_read_the_far_cells(layers):
+    # A car drawn at the map's far front corner, 60 m from the observer, beyond the 12 m
+    # the stem sees: the observer's own token notices it only through the layers.
+    torch.manual_seed(0)
+    body = MapAttentionBody(SHAPE, 1.5, 32.0, layers=layers).eval()
+    assert len(body.mix) == layers
+    x = torch.rand(1, *SHAPE)
+    far = x.clone()
+    far[..., :4, -4:] = 1.0 - far[..., :4, -4:]
+    me = 4 * 16 + 5
+    with torch.no_grad():
+        moved = (body.tokens(far)[0, me] - body.tokens(x)[0, me]).abs().max().item()
+    assert (moved > 1e-4) == (layers > 0)
+
+
+@pytest.mark.parametrize(("dueling", "layers"), [(False, 0), (True, 0), (False, 2)])
+def test_a_raw_network_with_the_reader_gives_five_q_values(dueling, layers):
+    net = QNetwork(VFANConfig(reader="attention", attention_layers=layers), "raw", SHAPE, dueling=dueling,
+                   geometry=(1.5, 32.0))
     q = net(torch.rand(5, *SHAPE))
     assert q.shape == (5, 5)
     q.sum().backward()
