@@ -50,7 +50,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("vfan", "reader"): "conv",
     ("vfan", "attention_width"): 64,
     ("vfan", "attention_heads"): 4,
-    ("vfan", "attention_layers"): 0,
+    ("vfan", "attention_context"): 0,
 }
 
 

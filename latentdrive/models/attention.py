@@ -12,10 +12,11 @@ reader applies the same idea to the map's cells:
   of ``(H/4) × (W/4)`` tokens (6 m squares at the default 1.5 m cells), each token one
   cell's features plus a linear embedding of its centre's position relative to the observer
   (metres / 50, along and across its heading);
-- optionally (``layers`` > 0) self-attention layers over the tokens, pre-norm transformer
-  encoder layers: the stem sees about 12 m around a token, and a car moves up to a dozen
-  metres between frames a second apart, so its footprints in two frames can lie in different
-  tokens; these layers let them meet;
+- optionally (``context`` > 0) residual 3 × 3 convolutions over the token grid, dilated
+  by 2: the stem sees about 12 m around a token, and a car moves up to a dozen metres
+  between frames a second apart, so its footprints in two frames can lie in different
+  tokens; each layer lets a token see two tokens (12 m at the default cells) further
+  each way;
 - the token of the observer's own cell, embedded, queries every token with ``heads`` heads
   (shared weights for every cell: a car contributes the same way wherever it is, its
   position entering only as a feature);
@@ -75,12 +76,12 @@ class MapAttentionBody(nn.Module):
         input_shape: ``(C, T, H, W)``; H and W at least 4.
         resolution, behind: the map's cell size and the distance it sees behind the
             observer, metres (``ObservationConfig``): where the tokens lie.
-        width: token features; heads: attention heads (must divide width); layers:
-            self-attention layers over the tokens (0: none); hidden: the head's hidden layer.
+        width: token features; heads: attention heads (must divide width); context:
+            dilated convolutions over the token grid (0: none); hidden: the head's hidden layer.
     """
 
     def __init__(self, input_shape: tuple[int, int, int, int], resolution: float, behind: float,
-                 width: int = 64, heads: int = 4, layers: int = 0, hidden: int = 256, n_actions: int = N_ACTIONS,
+                 width: int = 64, heads: int = 4, context: int = 0, hidden: int = 256, n_actions: int = N_ACTIONS,
                  dueling: bool = False) -> None:
         super().__init__()
         c, t, h, w = input_shape
@@ -95,10 +96,8 @@ class MapAttentionBody(nn.Module):
         self.grid: Tensor
         self.register_buffer("grid", grid, persistent=False)
         self.position = nn.Linear(2, width)
-        # Pre-norm, without dropout: the Q-learner's targets are noisy enough.
-        self.mix = nn.Sequential(*(nn.TransformerEncoderLayer(width, heads, dim_feedforward=2 * width, dropout=0.0,
-                                                              batch_first=True, norm_first=True)
-                                   for _ in range(layers)))
+        self.context = nn.ModuleList(nn.Conv2d(width, width, kernel_size=3, padding=2, dilation=2)
+                                     for _ in range(context))
         self.query = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, width))
         self.attend = nn.MultiheadAttention(width, heads, batch_first=True)
         self.dueling = dueling
@@ -109,13 +108,15 @@ class MapAttentionBody(nn.Module):
             self.head = nn.Sequential(nn.Linear(2 * width, hidden), nn.ReLU(), nn.Linear(hidden, n_actions))
 
     def tokens(self, x: Tensor) -> Tensor:
-        """Maps ``(B, C, T, H, W)`` → tokens ``(B, N, width)``: cell features plus position,
-        then the self-attention layers, if any."""
+        """Maps ``(B, C, T, H, W)`` → tokens ``(B, N, width)``: each cell's features (after
+        the context layers, if any) plus its position."""
         b, c, t, h, w = x.shape
         f = self.stem(x.reshape(b, c * t, h, w))  # (B, width, rows, cols)
         if (f.shape[2], f.shape[3]) != (self.rows, self.cols):
             raise ValueError(f"maps of {h} × {w} cells, not those this reader was built for")
-        return self.mix(f.flatten(2).transpose(1, 2) + self.position(self.grid.to(f.dtype)))
+        for conv in self.context:
+            f = f + torch.relu(conv(f))
+        return f.flatten(2).transpose(1, 2) + self.position(self.grid.to(f.dtype))
 
     def read(self, tokens: Tensor, me: int) -> Tensor:
         """Q-values ``(B, n_actions)`` from ``tokens`` ``(B, N, width)``, token ``me`` the

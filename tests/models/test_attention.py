@@ -53,25 +53,30 @@ def test_the_other_cells_are_read_as_a_set():
         assert not torch.allclose(before, body(x), atol=1e-4)
 
 
-@pytest.mark.parametrize("layers", [0, 1])
-def test_self_attention_layers_let_each_token_read_the_far_cells(layers):
-    # A car drawn at the map's far front corner, 60 m from the observer, beyond the 12 m
-    # the stem sees: the observer's own token notices it only through the layers.
+@pytest.mark.parametrize(("context", "sees"), [(0, 1), (1, 3), (2, 5)])
+def test_context_layers_widen_what_the_observers_token_sees(context, sees):
+    # Cells changed in one token-sized block at a time, ``k`` tokens ahead of the
+    # observer's: its own token feels them up to ``sees`` tokens away (the stem's 8 cells
+    # reach one token on, each dilated layer two more).
     torch.manual_seed(0)
-    body = MapAttentionBody(SHAPE, 1.5, 32.0, layers=layers).eval()
-    assert len(body.mix) == layers
+    body = MapAttentionBody(SHAPE, 1.5, 32.0, context=context).eval()
+    assert len(body.context) == context
     x = torch.rand(1, *SHAPE)
-    far = x.clone()
-    far[..., :4, -4:] = 1.0 - far[..., :4, -4:]
-    me = 4 * 16 + 5
-    with torch.no_grad():
-        moved = (body.tokens(far)[0, me] - body.tokens(x)[0, me]).abs().max().item()
-    assert (moved > 1e-4) == (layers > 0)
+    me_row, me_col = 4, 5
+    felt = []
+    for k in range(1, 8):
+        changed = x.clone()
+        col = 4 * (me_col + k)
+        changed[..., 4 * me_row: 4 * me_row + 4, col: col + 4] = 1.0 - changed[..., 4 * me_row: 4 * me_row + 4, col: col + 4]
+        with torch.no_grad():
+            moved = (body.tokens(changed)[0, me_row * 16 + me_col] - body.tokens(x)[0, me_row * 16 + me_col])
+        felt.append(moved.abs().max().item() > 1e-6)
+    assert felt == [k <= sees for k in range(1, 8)]
 
 
-@pytest.mark.parametrize(("dueling", "layers"), [(False, 0), (True, 0), (False, 2)])
-def test_a_raw_network_with_the_reader_gives_five_q_values(dueling, layers):
-    net = QNetwork(VFANConfig(reader="attention", attention_layers=layers), "raw", SHAPE, dueling=dueling,
+@pytest.mark.parametrize(("dueling", "context"), [(False, 0), (True, 0), (False, 2)])
+def test_a_raw_network_with_the_reader_gives_five_q_values(dueling, context):
+    net = QNetwork(VFANConfig(reader="attention", attention_context=context), "raw", SHAPE, dueling=dueling,
                    geometry=(1.5, 32.0))
     q = net(torch.rand(5, *SHAPE))
     assert q.shape == (5, 5)
