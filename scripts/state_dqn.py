@@ -23,7 +23,7 @@ the rule driver play the test set, the first ``--episodes`` evaluation episodes 
 of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usage::
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
-        [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--view-box]
+        [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
 
 ``--set`` takes :class:`~latentdrive.rl.dqn.DQNConfig` and
@@ -76,6 +76,8 @@ REFUSED = ("augment_shift", "explore_rule", "dueling", "prioritized", "priority_
 #: The AV's own features that place it in the world (cos and sin of its heading, world x and
 #: y, the share of the episode gone): ``--no-pose`` zeroes them.
 POSE = slice(2, 7)
+#: The share of the episode gone, within :data:`POSE`: ``--no-time`` zeroes it alone.
+TIME = 6
 
 
 #: The default VelocityMap's view in the AV's frame, metres: behind, ahead, to each side.
@@ -83,13 +85,16 @@ MAP_VIEW = (32.0, 64.0, 24.0)
 
 
 def features(inp: PolicyInput, specs: list[Any], k: int, radius: float, route: bool, pose: bool,
-             view_box: tuple[float, float, float] | None = None) -> NDArray[np.float32]:
-    """:func:`batch_features` ``(num_envs, n_av, F)``; without ``pose``, :data:`POSE` zeroed;
+             view_box: tuple[float, float, float] | None = None, time: bool = True) -> NDArray[np.float32]:
+    """:func:`batch_features` ``(num_envs, n_av, F)``; without ``pose``, :data:`POSE` zeroed,
+    without ``time``, :data:`TIME`;
     with ``view_box`` (metres behind, ahead, to each side), the neighbours outside it made
     absent (zero rows)."""
     x = batch_features(inp, specs, k, radius, route)
     if not pose:
         x[..., POSE] = 0.0
+    if not time:
+        x[..., TIME] = 0.0
     if view_box is not None:
         start = x.shape[-1] - k * PER_NEIGHBOUR
         rows = x[..., start:].reshape(*x.shape[:2], k, PER_NEIGHBOUR).copy()
@@ -106,14 +111,14 @@ class StatePolicy:
 
     def __init__(self, net: nn.Module, k: int, radius: float, route: bool,
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
-                 pose: bool = True, view_box: tuple[float, float, float] | None = None) -> None:
+                 pose: bool = True, view_box: tuple[float, float, float] | None = None, time: bool = True) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
-        self.pose, self.view_box = pose, view_box
+        self.pose, self.view_box, self.time = pose, view_box, time
         self.latest: NDArray[np.float32] | None = None
 
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
         specs = inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios]
-        x = features(inp, list(specs), self.k, self.radius, self.route, self.pose, self.view_box)
+        x = features(inp, list(specs), self.k, self.radius, self.route, self.pose, self.view_box, self.time)
         self.latest = x
         with torch.no_grad():
             q = self.net(torch.from_numpy(x.reshape(-1, x.shape[-1])))
@@ -129,7 +134,7 @@ def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], epi
              reset_seed: int | None = None) -> list[Any]:
     def make() -> Policy:
         return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
-                           view_box=args.view_box)
+                           view_box=args.view_box, time=not args.no_time)
 
     net.eval()
     try:
@@ -159,7 +164,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward
     window = NStepWindow(cfg.n_step, cfg.gamma, slots)
     transitions = updates = 0
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
-                         pose=not args.no_pose, view_box=args.view_box)
+                         pose=not args.no_pose, view_box=args.view_box, time=not args.no_time)
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -188,7 +193,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward
         # Where each transition leads: the Scene the step led to (the ended episode's last
         # where it ended); exact states carry no noise, so this is what the policy reads there.
         after = features(PolicyInput(rec.obs_after, rec.scenes, ag.active, names, vec.simulator), specs,
-                         args.neighbours, args.radius, route, not args.no_pose, args.view_box)
+                         args.neighbours, args.radius, route, not args.no_pose, args.view_box, not args.no_time)
         next_ids = replay.store.add(after[ei, ai], cur[ei, ai])
         # Terminated (crash, mission done) does not bootstrap; cut off (a partner crashed,
         # time ran out) does: the n-step window keeps them apart (rl.nstep).
@@ -248,6 +253,7 @@ def main() -> int:
     ap.add_argument("--no-pose", action="store_true",
                     help="zero the AV's world heading and position and the share of the episode gone, which "
                          "an ego-centred map does not show")
+    ap.add_argument("--no-time", action="store_true", help="zero only the share of the episode gone")
     ap.add_argument("--view-box", nargs="?", const=",".join(f"{v:g}" for v in MAP_VIEW), metavar="BEHIND,AHEAD,SIDE",
                     help="see only the neighbours inside this box, metres (alone: the default map's view, "
                          "32 m behind, 64 m ahead, 24 m to each side)")
