@@ -143,7 +143,9 @@ def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], epi
         net.train()
 
 
-def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward: RewardConfig) -> nn.Module:
+def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
+          reward: RewardConfig) -> tuple[nn.Module, Replay]:
+    """The trained network and its replay."""
     # Seeding: the weights (torch), exploration and replay sampling (numpy), and the
     # training episodes (the vector env's reset seed) all follow --seed.
     torch.manual_seed(args.seed)
@@ -226,7 +228,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig, reward
     if writer is not None:
         handle.close()
     print(f"trained on {transitions} agent-transitions, {updates} updates, {time.perf_counter() - t0:.0f} s")
-    return net
+    return net, replay
 
 
 def configs(items: list[str]) -> tuple[DQNConfig, RewardConfig]:
@@ -284,7 +286,7 @@ def main() -> int:
         ap.error(str(err))
     torch.set_num_threads(1)
     scenarios = args.scenarios.split(",")
-    net = train(args, scenarios, cfg, reward)
+    net, _ = train(args, scenarios, cfg, reward)
     net.eval()
     outcomes = {"state DQN": evaluate(net, args, scenarios, args.episodes),
                 "rule": evaluate_policy(reference_policy("rule"), scenarios, args.episodes, envs=16)}

@@ -113,3 +113,29 @@ def test_a_view_box_drops_the_neighbours_outside_it_and_keeps_the_others():
     assert inside.any() and outside.any()  # the case is tested both ways
     assert np.array_equal(kept[inside], rows[inside]) and np.all(kept[outside] == 0)
     assert np.array_equal(boxed[..., :start], full[..., :start])
+
+
+def test_each_stored_transition_leads_one_decision_on_across_auto_resets():
+    # A short run of 4 roundabout environments through many episode ends. The share of the
+    # episode gone (feature 6) of every stored transition's next state must be one decision
+    # (1 s) later than its state's, and the AV must not jump: a next state taken from the
+    # episode that followed, or from another agent, would break both.
+    import argparse
+
+    from latentdrive.rl.dqn import DQNConfig
+    from latentdrive.scenarios import get_spec
+    from latentdrive.scenarios.spec import RewardConfig
+
+    args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=300, radius=80.0,
+                              no_route=False, no_pose=False, no_time=False, view_box=None, out=None,
+                              eval_every=0, eval_episodes=1)
+    cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
+    _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
+    n = replay.added
+    assert n >= 300 and np.all(replay.steps[:n] == 1)
+    ended = replay.terminated[:n]
+    assert 0 < ended.sum() < n  # crashes and arrivals happened: the run crossed episode ends
+    before, after = replay.store.get(replay.obs_id[:n]), replay.store.get(replay.next_id[:n])
+    np.testing.assert_allclose(after[:, 6] - before[:, 6], 1.0 / get_spec("roundabout").duration, atol=1e-6)
+    moved = np.hypot(*(100.0 * (after[:, 4:6] - before[:, 4:6])).T)
+    assert moved.max() < 40.0
