@@ -85,15 +85,15 @@ MAP_VIEW = (32.0, 64.0, 24.0)
 
 
 def features(inp: PolicyInput, specs: list[Any], k: int, radius: float, route: bool, pose: bool,
-             view_box: tuple[float, float, float] | None = None, time: bool = True) -> NDArray[np.float32]:
+             view_box: tuple[float, float, float] | None = None, show_time: bool = True) -> NDArray[np.float32]:
     """:func:`batch_features` ``(num_envs, n_av, F)``; without ``pose``, :data:`POSE` zeroed,
-    without ``time``, :data:`TIME`;
+    without ``show_time``, :data:`TIME`;
     with ``view_box`` (metres behind, ahead, to each side), the neighbours outside it made
     absent (zero rows)."""
     x = batch_features(inp, specs, k, radius, route)
     if not pose:
         x[..., POSE] = 0.0
-    if not time:
+    if not show_time:
         x[..., TIME] = 0.0
     if view_box is not None:
         start = x.shape[-1] - k * PER_NEIGHBOUR
@@ -111,14 +111,14 @@ class StatePolicy:
 
     def __init__(self, net: nn.Module, k: int, radius: float, route: bool,
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
-                 pose: bool = True, view_box: tuple[float, float, float] | None = None, time: bool = True) -> None:
+                 pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
-        self.pose, self.view_box, self.time = pose, view_box, time
+        self.pose, self.view_box, self.show_time = pose, view_box, show_time
         self.latest: NDArray[np.float32] | None = None
 
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
         specs = inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios]
-        x = features(inp, list(specs), self.k, self.radius, self.route, self.pose, self.view_box, self.time)
+        x = features(inp, list(specs), self.k, self.radius, self.route, self.pose, self.view_box, self.show_time)
         self.latest = x
         with torch.no_grad():
             q = self.net(torch.from_numpy(x.reshape(-1, x.shape[-1])))
@@ -134,7 +134,7 @@ def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], epi
              reset_seed: int | None = None) -> list[Any]:
     def make() -> Policy:
         return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
-                           view_box=args.view_box, time=not args.no_time)
+                           view_box=args.view_box, show_time=not args.no_time)
 
     net.eval()
     try:
@@ -166,7 +166,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     window = NStepWindow(cfg.n_step, cfg.gamma, slots)
     transitions = updates = 0
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
-                         pose=not args.no_pose, view_box=args.view_box, time=not args.no_time)
+                         pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time)
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 

@@ -13,10 +13,10 @@ reader applies the same idea to the map's cells:
   cell's features plus a linear embedding of its centre's position relative to the observer
   (metres / 50, along and across its heading);
 - optionally (``context`` > 0) residual 3 × 3 convolutions over the token grid, dilated
-  by 2: the stem sees about 12 m around a token, and a car's footprint moves by its speed
-  relative to the observer's, often 10-30 m, between frames a second apart, so its
-  footprints in two frames can lie in different tokens; each layer lets a token see two tokens (12 m at the default cells) further
-  each way;
+  by 2: the stem sees 8 cells (12 m at the default cells) around a token, and between
+  frames a second apart a car's footprint moves by its speed relative to the observer's
+  (10 m at 10 m/s, nearly two tokens), so its footprints in two frames can lie in
+  different tokens; each layer lets a token see two tokens further each way;
 - the token of the observer's own cell, embedded, queries every token with ``heads`` heads
   (shared weights for every cell: a car contributes the same way wherever it is, its
   position entering only as a feature);

@@ -65,7 +65,7 @@ class VFANConfig(Config):
     reader: Literal["conv", "attention"] = Field("conv", description="How the raw map is read: 'conv', the paper's 3D-convolutional body (the fields above); 'attention', a convolutional stem to a grid of 6 m tokens that the observer's own token queries by multi-head attention, the same weights for every cell (latentdrive.models.attention; raw mode only; channels, kernels, strides and temporal_kernel do not apply).")
     attention_width: int = Field(64, ge=8, le=1024, description="Token features of the attention reader (reader 'attention').")
     attention_heads: int = Field(4, ge=1, le=64, description="Attention heads of the attention reader; must divide attention_width.")
-    attention_context: int = Field(0, ge=0, le=8, description="Residual 3x3 convolutions over the attention reader's token grid, dilated by 2 (reader 'attention'): each lets a token see two tokens (12 m at the default cells) further each way, so that a car's footprints in frames a second apart, which lie in different tokens when it moves 10-30 m relative to the observer, meet. 0, the default, is the reader without them.")
+    attention_context: int = Field(0, ge=0, le=8, description="Residual 3x3 convolutions over the attention reader's token grid, dilated by 2 (reader 'attention'): each lets a token see two tokens (12 m at the default cells) further each way, so that a car's footprints in frames a second apart, which lie in different tokens once it moves more than a token's 6 m relative to the observer, meet. 0, the default, is the reader without them.")
 
     @model_validator(mode="after")
     def _heads_divide(self) -> VFANConfig:

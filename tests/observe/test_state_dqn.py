@@ -91,7 +91,7 @@ def test_no_pose_zeroes_the_avs_world_heading_position_and_time_only():
     assert np.all(np.any(full[..., pose] != 0, axis=-1)) and np.all(bare[..., pose] == 0)
     assert np.array_equal(full[..., ~pose], bare[..., ~pose])
     # --no-time: the share of the episode gone (3 decisions of 1 s) alone.
-    timeless = MOD["features"](inp, [spec, spec], 12, 80.0, True, True, time=False)
+    timeless = MOD["features"](inp, [spec, spec], 12, 80.0, True, True, show_time=False)
     assert full[0, 0, 6] == pytest.approx(3 / spec.duration) and np.all(timeless[..., 6] == 0)
     assert np.array_equal(np.delete(full, 6, axis=-1), np.delete(timeless, 6, axis=-1))
 
