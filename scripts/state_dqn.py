@@ -11,6 +11,15 @@ of the VelocityMap, the exact-state vector of :func:`latentdrive.observe.state.s
 ``--radius`` metres) through :class:`EgoAttention` (``--arch attention``, the default) or an
 MLP (``--arch mlp``).
 
+With ``--reader map`` the network reads the VelocityMap instead, through the attention
+reader of ``vfan.reader=attention`` (:class:`~latentdrive.models.attention.MapAttentionBody`,
+the default map and its sensor noise), and gets the AV's place in the world, :data:`POSE`,
+added to its own token through a small MLP (:class:`MapPoseNet`); ``--no-pose`` zeroes the
+place, leaving the map alone. The pair asks whether the place that the ego-centred map does
+not show is what separates the map's policies from the exact-state learner inside the map's
+view (``--no-route --view-box``). The place is in world coordinates: a policy that leans on
+it has learned the preset layouts, not roads it has not seen.
+
 It is a diagnostic reference, not the paper's method: the state vector has no raster and no
 sensor noise, and holds the AV's route, which the paper's map does not. If this learner beats
 the rule driver where the map's does not, the map's reader (or the map) is what holds the
@@ -24,7 +33,14 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
+        [--reader state|map] [--compare RUN] [--outcomes FILE.json]
+    python scripts/state_dqn.py --pair A.json B.json
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
+
+``--compare RUN`` also plays a ``train-policy`` run's greedy policy (on its own map) on the
+test set and pairs it with this one. ``--outcomes`` writes the test episodes' outcomes;
+``--pair A.json B.json`` trains nothing and pairs two such files (McNemar), which must hold
+the same episodes.
 
 ``--set`` takes :class:`~latentdrive.rl.dqn.DQNConfig` and
 :class:`~latentdrive.scenarios.spec.RewardConfig` fields, as ``train-policy --set`` does; the
@@ -38,6 +54,7 @@ from __future__ import annotations
 import argparse
 import copy
 import csv
+import json
 import runpy
 import time
 from collections.abc import Callable
@@ -50,15 +67,20 @@ from numpy.typing import NDArray
 from torch import nn
 from tqdm import tqdm
 
-from latentdrive.config import ConfigError, parse_override_args, validate
+from latentdrive.config import ConfigError, ObservationConfig, parse_override_args, validate
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.report import compare, format_compare, format_table, policy_report
 from latentdrive.evaluate.run import evaluate_policy
+from latentdrive.fileio import atomic_write_text
+from latentdrive.models.attention import MapAttentionBody
 from latentdrive.observe.state import PER_NEIGHBOUR, state_size
+from latentdrive.outcome import EpisodeOutcome, outcomes_from_json, outcomes_to_json
 from latentdrive.rl.dqn import DQNConfig, epsilon, target_step, update, updates_owed
 from latentdrive.rl.nstep import NStepWindow
-from latentdrive.rl.replay import LatentStore, Replay
-from latentdrive.rollout import Policy, PolicyInput, rollout
+from latentdrive.rl.policy import greedy_policy, load_policy_network
+from latentdrive.rl.replay import FrameStore, LatentStore, Replay
+from latentdrive.rollout import Policy, PolicyInput, StepRecord, rollout
+from latentdrive.runtime import PRECISIONS, autocast, resolve_precision
 from latentdrive.scenarios import get_spec
 from latentdrive.scenarios.spec import RewardConfig
 from latentdrive.seeds import train_reset_seed, validation_reset_seed
@@ -78,6 +100,10 @@ REFUSED = ("augment_shift", "explore_rule", "dueling", "prioritized", "priority_
 POSE = slice(2, 7)
 #: The share of the episode gone, within :data:`POSE`: ``--no-time`` zeroes it alone.
 TIME = 6
+N_POSE = POSE.stop - POSE.start
+#: ``--reader map`` reads the default VelocityMap (``observation`` overrides: none).
+MAP: dict[str, Any] = {}
+CPU = torch.device("cpu")
 
 
 #: The default VelocityMap's view in the AV's frame, metres: behind, ahead, to each side.
@@ -105,23 +131,98 @@ def features(inp: PolicyInput, specs: list[Any], k: int, radius: float, route: b
     return x
 
 
+def map_features(inp: PolicyInput, specs: list[Any], pose: bool = True, show_time: bool = True) -> NDArray[np.float32]:
+    """``--reader map``'s input ``(num_envs, n_av, 4·T·H·W + N_POSE)``: each agent's stacked
+    VelocityMap, flattened, then :data:`POSE` (zeroed without ``pose``; its time alone zeroed
+    without ``show_time``)."""
+    e, a = inp.obs.shape[:2]
+    place = batch_features(inp, specs, 0, 0.0, False)[..., POSE]
+    if not pose:
+        place[:] = 0.0
+    if not show_time:
+        place[..., TIME - POSE.start] = 0.0
+    return np.concatenate([inp.obs.reshape(e, a, -1), place], axis=-1, dtype=np.float32)
+
+
+class MapAndPose:
+    """The replay's observation store for ``--reader map``: each observation is a
+    :func:`map_features` row; its map goes to a :class:`~latentdrive.rl.replay.FrameStore`
+    (the newest frame, uint8, linked to the agent's previous one), its place to a
+    :class:`~latentdrive.rl.replay.LatentStore`. Both are filled together, so their ids agree."""
+
+    def __init__(self, capacity: int, shape: tuple[int, int, int, int]) -> None:
+        self.capacity, self.added, self.shape = int(capacity), 0, shape
+        self.n_map = int(np.prod(shape))
+        self.maps = FrameStore(capacity, shape)
+        self.place = LatentStore(capacity, (N_POSE,))
+
+    def add(self, obs: NDArray[np.float32], prev: NDArray[np.int64]) -> NDArray[np.int64]:
+        ids = self.maps.add(obs[:, : self.n_map].reshape(-1, *self.shape), prev)
+        self.place.add(obs[:, self.n_map:], prev)
+        self.added = self.maps.added
+        return ids
+
+    def get(self, ids: NDArray[np.int64]) -> NDArray[np.float32]:
+        maps = self.maps.get(ids).reshape(len(ids), -1)
+        return np.concatenate([maps, self.place.get(ids)], axis=1)
+
+    def state(self) -> dict[str, np.ndarray]:
+        return {**{f"maps.{k}": v for k, v in self.maps.state().items()},
+                **{f"place.{k}": v for k, v in self.place.state().items()}}
+
+    def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        self.maps.load_state({k.removeprefix("maps."): v for k, v in arrays.items() if k.startswith("maps.")})
+        self.place.load_state({k.removeprefix("place."): v for k, v in arrays.items() if k.startswith("place.")})
+        self.added = self.maps.added
+
+
+class MapPoseNet(nn.Module):
+    """``--reader map``'s network: :class:`~latentdrive.models.attention.MapAttentionBody` (the
+    ``vfan.reader=attention`` reader at its default width and heads) over the map part of a
+    :func:`map_features` row, with an MLP's embedding of the place added to the observer's
+    own token before it queries the others. A zero place adds a constant, so ``--no-pose``
+    reads the map alone with the same parameters."""
+
+    def __init__(self, obs: ObservationConfig, hidden: int, width: int = 64, heads: int = 4) -> None:
+        super().__init__()
+        self.shape = obs.shape
+        self.n_map = int(np.prod(self.shape))
+        self.body = MapAttentionBody(self.shape, obs.resolution, obs.behind, width=width, heads=heads, hidden=hidden)
+        self.place = nn.Sequential(nn.Linear(N_POSE, width), nn.ReLU(), nn.Linear(width, width))
+        self.me = self.body.me[0] * self.body.cols + self.body.me[1]
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        tokens = self.body.tokens(x[:, : self.n_map].reshape(-1, *self.shape))
+        mine = tokens[:, self.me] + self.place(x[:, self.n_map:])
+        tokens = torch.cat([tokens[:, : self.me], mine[:, None], tokens[:, self.me + 1:]], dim=1)
+        return self.body.read(tokens, self.me)
+
+
 class StatePolicy:
-    """ε-greedy (``eps() > 0``) or greedy actions of ``net`` over :func:`batch_features`;
-    keeps the latest step's features ``(num_envs, n_av, F)`` in :attr:`latest`."""
+    """ε-greedy (``eps() > 0``) or greedy actions of ``net`` over :func:`batch_features`
+    (``reader`` "state") or :func:`map_features` ("map"), its forward pass in ``dtype``;
+    keeps the latest step's input ``(num_envs, n_av, F)`` in :attr:`latest`."""
 
     def __init__(self, net: nn.Module, k: int, radius: float, route: bool,
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
-                 pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True) -> None:
+                 pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True,
+                 reader: str = "state", dtype: torch.dtype = torch.float32) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
-        self.pose, self.view_box, self.show_time = pose, view_box, show_time
+        self.pose, self.view_box, self.show_time, self.reader, self.dtype = pose, view_box, show_time, reader, dtype
         self.latest: NDArray[np.float32] | None = None
 
+    def read(self, inp: PolicyInput) -> NDArray[np.float32]:
+        """This policy's input ``(num_envs, n_av, F)`` for ``inp``."""
+        specs = list(inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios])
+        if self.reader == "map":
+            return map_features(inp, specs, self.pose, self.show_time)
+        return features(inp, specs, self.k, self.radius, self.route, self.pose, self.view_box, self.show_time)
+
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
-        specs = inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios]
-        x = features(inp, list(specs), self.k, self.radius, self.route, self.pose, self.view_box, self.show_time)
+        x = self.read(inp)
         self.latest = x
-        with torch.no_grad():
-            q = self.net(torch.from_numpy(x.reshape(-1, x.shape[-1])))
+        with torch.no_grad(), autocast(self.dtype, CPU):
+            q = self.net(torch.from_numpy(x.reshape(-1, x.shape[-1]))).float()
         act = q.argmax(-1).numpy().reshape(x.shape[:2]).astype(np.int64)
         e = self.eps()
         if self.rng is not None and e > 0:
@@ -130,15 +231,36 @@ class StatePolicy:
         return act
 
 
+def next_input(rec: StepRecord, names: NDArray[np.object_], simulator: Any) -> PolicyInput:
+    """Where each transition of ``rec`` leads, as a policy reads it: the Scene the step led
+    to and the maps drawn there. Where an episode ended, both are its last ones
+    (``rec.scenes``, ``rec.next_obs``), not the next episode's first (``rec.obs_after``)."""
+    return PolicyInput(rec.next_obs, rec.scenes, rec.agents.active, names, simulator)
+
+
+def reader(args: argparse.Namespace) -> str:
+    return str(getattr(args, "reader", "state"))
+
+
+def precision(args: argparse.Namespace) -> torch.dtype:
+    return resolve_precision(getattr(args, "precision", "fp32"), CPU)
+
+
+def env_map(args: argparse.Namespace) -> dict[str, Any]:
+    """The ``observation`` overrides of the envs: the map is rendered only to be read."""
+    return MAP if reader(args) == "map" else TINY_MAP
+
+
 def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], episodes: int,
              reset_seed: int | None = None) -> list[Any]:
     def make() -> Policy:
         return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
-                           view_box=args.view_box, show_time=not args.no_time)
+                           view_box=args.view_box, show_time=not args.no_time, reader=reader(args),
+                           dtype=precision(args))
 
     net.eval()
     try:
-        return evaluate_policy(make, scenarios, episodes, envs=16, reset_seed=reset_seed, observation=TINY_MAP)
+        return evaluate_policy(make, scenarios, episodes, envs=16, reset_seed=reset_seed, observation=env_map(args))
     finally:
         net.train()
 
@@ -151,22 +273,33 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(np.random.SeedSequence([args.seed, 0x51]))
     route = not args.no_route
-    n_in = state_size(args.neighbours, route)
-    net = (EgoAttention(state_size(0, route), PER_NEIGHBOUR, args.neighbours, args.hidden)
-           if args.arch == "attention" else mlp(n_in, args.hidden))
+    dtype = precision(args)
+    vec = make_vec(scenarios, args.envs, backend="fast", observation=env_map(args), reward=reward.model_dump())
+    # Every step stores at most one next observation per agent and, for new episodes, one
+    # first observation per agent; the replay's oldest entry reaches n-1 steps further back,
+    # and a stored map's stack T-1 steps further still.
+    capacity = 2 * cfg.buffer_size + (2 * cfg.n_step + 4 + 2 * ObservationConfig().frames) * args.envs * vec.n_av
+    net: nn.Module
+    store: Any
+    if reader(args) == "map":
+        net = MapPoseNet(ObservationConfig(), args.hidden)
+        n_in, what = net.n_map + N_POSE, "map reader and place"
+        store = MapAndPose(capacity, net.shape)
+    else:
+        n_in, what = state_size(args.neighbours, route), args.arch
+        net = (EgoAttention(state_size(0, route), PER_NEIGHBOUR, args.neighbours, args.hidden)
+               if args.arch == "attention" else mlp(n_in, args.hidden))
+        store = LatentStore(capacity, (n_in,))
     target = copy.deepcopy(net).requires_grad_(False)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
-    print(f"state DQN: {n_in} inputs, {sum(p.numel() for p in net.parameters()):,} parameters, {args.arch}")
-    vec = make_vec(scenarios, args.envs, backend="fast", observation=TINY_MAP, reward=reward.model_dump())
+    print(f"state DQN: {n_in} inputs, {sum(p.numel() for p in net.parameters()):,} parameters, {what}, {dtype}")
     slots = (args.envs, vec.n_av)
-    # Every step stores at most one next observation per agent and, for new episodes, one
-    # first observation per agent; the replay's oldest entry reaches n-1 steps further back.
-    replay = Replay(cfg.buffer_size, LatentStore(2 * cfg.buffer_size + (2 * cfg.n_step + 4) * args.envs * vec.n_av,
-                                                 (n_in,)))
+    replay = Replay(cfg.buffer_size, store)
     window = NStepWindow(cfg.n_step, cfg.gamma, slots)
     transitions = updates = 0
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
-                         pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time)
+                         pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time,
+                         reader=reader(args), dtype=dtype)
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -192,10 +325,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     for rec in rollout(vec, act, seed=train_reset_seed(args.seed, 0)):
         ag = rec.agents
         ei, ai = np.nonzero(ag.acting)
-        # Where each transition leads: the Scene the step led to (the ended episode's last
-        # where it ended); exact states carry no noise, so this is what the policy reads there.
-        after = features(PolicyInput(rec.obs_after, rec.scenes, ag.active, names, vec.simulator), specs,
-                         args.neighbours, args.radius, route, not args.no_pose, args.view_box, not args.no_time)
+        after = policy.read(next_input(rec, names, vec.simulator))
         next_ids = replay.store.add(after[ei, ai], cur[ei, ai])
         # Terminated (crash, mission done) does not bootstrap; cut off (a partner crashed,
         # time ran out) does: the n-step window keeps them apart (rl.nstep).
@@ -207,7 +337,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
         transitions += len(ei)
         bar.update(len(ei))
         for _ in range(max(0, updates_owed(cfg, transitions) - updates)):
-            stats = update(net, target, opt, replay.sample(rng, cfg.batch_size), cfg)
+            stats = update(net, target, opt, replay.sample(rng, cfg.batch_size), cfg, dtype)
             loss = stats.loss
             updates += 1
             target_step(target, net, cfg, updates)
@@ -229,6 +359,20 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
         handle.close()
     print(f"trained on {transitions} agent-transitions, {updates} updates, {time.perf_counter() - t0:.0f} s")
     return net, replay
+
+
+def read_outcomes(path: str) -> list[EpisodeOutcome]:
+    """The outcomes an ``--outcomes`` file holds; ``ValueError`` naming the file otherwise."""
+    try:
+        return outcomes_from_json(json.loads(Path(path).read_text()))
+    except (OSError, ValueError) as err:  # JSONDecodeError is a ValueError
+        raise ValueError(f"{path}: not an outcomes file ({err})") from None
+
+
+def pair(a: list[EpisodeOutcome], b: list[EpisodeOutcome], names: tuple[str, str]) -> str:
+    """The paired comparison of two policies' outcomes on the same episodes (``ValueError``
+    naming an episode that only one of them played, otherwise)."""
+    return format_compare(compare(a, b), names)
 
 
 def configs(items: list[str]) -> tuple[DQNConfig, RewardConfig]:
@@ -260,13 +404,33 @@ def main() -> int:
                     help="see only the neighbours inside this box, metres (alone: the default map's view, "
                          "32 m behind, 64 m ahead, 24 m to each side)")
     ap.add_argument("--arch", choices=("attention", "mlp"), default="attention")
+    ap.add_argument("--reader", choices=("state", "map"), default="state",
+                    help="read exact states (default) or the VelocityMap with the AV's place (module docstring)")
+    ap.add_argument("--precision", choices=PRECISIONS, default="fp32",
+                    help="the network's compute precision, as train-policy's precision (default fp32)")
     ap.add_argument("--hidden", type=int, default=256)
     ap.add_argument("--eval-every", type=int, default=25_000, help="agent-transitions between validations (0: at the end only)")
     ap.add_argument("--eval-episodes", type=int, default=40, help="validation episodes per scenario (default 40)")
     ap.add_argument("--episodes", type=int, default=200, help="test episodes per scenario (default 200)")
     ap.add_argument("--out", help="write the validation curve to this CSV file")
+    ap.add_argument("--compare", metavar="RUN", help="a train-policy run to play on the test set and pair with")
+    ap.add_argument("--outcomes", metavar="FILE.json", help="write the test episodes' outcomes to this file")
+    ap.add_argument("--pair", nargs=2, metavar=("A.json", "B.json"),
+                    help="train nothing: pair two --outcomes files (McNemar) and exit")
     ap.add_argument("-s", "--set", action="append", default=[], metavar="dqn.KEY=VALUE")
     args = ap.parse_args()
+    if args.pair:
+        try:
+            a, b = (read_outcomes(f) for f in args.pair)
+            print(pair(a, b, (Path(args.pair[0]).stem, Path(args.pair[1]).stem)))
+        except ValueError as err:
+            ap.exit(1, f"error: {err}\n")
+        return 0
+    if args.compare:
+        try:
+            compared = load_policy_network(args.compare)
+        except Exception as err:  # the loader's errors name the run and the problem
+            ap.error(f"--compare {args.compare}: {err}")
     for name in ("steps", "envs", "neighbours", "hidden", "eval_episodes", "episodes"):
         if getattr(args, name) < 1:
             ap.error(f"--{name.replace('_', '-')} must be at least 1")
@@ -288,11 +452,20 @@ def main() -> int:
     scenarios = args.scenarios.split(",")
     net, _ = train(args, scenarios, cfg, reward)
     net.eval()
-    outcomes = {"state DQN": evaluate(net, args, scenarios, args.episodes),
+    name = "map DQN" if args.reader == "map" else "state DQN"
+    outcomes = {name: evaluate(net, args, scenarios, args.episodes),
                 "rule": evaluate_policy(reference_policy("rule"), scenarios, args.episodes, envs=16)}
+    if args.compare:
+        other, run_cfg = compared
+        outcomes[Path(args.compare).name] = evaluate_policy(
+            greedy_policy(other, CPU), scenarios, args.episodes, envs=16,
+            observation=run_cfg.observation.model_dump(), reward=run_cfg.reward.model_dump())
+    if args.outcomes:
+        atomic_write_text(args.outcomes, json.dumps(outcomes_to_json(outcomes[name]), allow_nan=False) + "\n")
     print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16)")
-    print(format_table({name: policy_report(o) for name, o in outcomes.items()}))
-    print(format_compare(compare(outcomes["state DQN"], outcomes["rule"]), ("state DQN", "rule")))
+    print(format_table({k: policy_report(o) for k, o in outcomes.items()}))
+    for k in [k for k in outcomes if k != name]:
+        print(pair(outcomes[name], outcomes[k], (name, k)))
     return 0
 
 

@@ -139,3 +139,114 @@ def test_each_stored_transition_leads_one_decision_on_across_auto_resets():
     np.testing.assert_allclose(after[:, 6] - before[:, 6], 1.0 / get_spec("roundabout").duration, atol=1e-6)
     moved = np.hypot(*(100.0 * (after[:, 4:6] - before[:, 4:6])).T)
     assert moved.max() < 40.0
+
+
+def test_the_map_readers_input_is_the_stacked_map_then_the_place():
+    from latentdrive.scenarios import get_spec
+
+    inp, spec = _input_after("roundabout", 2, 3, 3), get_spec("roundabout")
+    inp = inp._replace(obs=np.random.default_rng(0).random((*inp.active.shape, 4, 4, 8, 8), dtype=np.float32))
+    full = MOD["features"](inp, [spec, spec], 12, 80.0, True, True)
+    x = MOD["map_features"](inp, [spec, spec])
+    n_map = 4 * 4 * 8 * 8
+    assert x.shape == (*inp.active.shape, n_map + 5) and x.dtype == np.float32
+    assert np.array_equal(x[..., :n_map], inp.obs.reshape(*inp.active.shape, -1))
+    assert np.array_equal(x[..., n_map:], full[..., 2:7])
+    assert np.all(MOD["map_features"](inp, [spec, spec], pose=False)[..., n_map:] == 0)
+    timeless = MOD["map_features"](inp, [spec, spec], show_time=False)
+    assert np.all(timeless[..., -1] == 0) and np.array_equal(timeless[..., :-1], x[..., :-1])
+
+
+def test_the_map_and_pose_store_rebuilds_stacks_and_keeps_the_place():
+    shape = (4, 3, 4, 8)
+    n_map = int(np.prod(shape))
+    store = MOD["MapAndPose"](16, shape)
+    rng = np.random.default_rng(1)
+    frames = rng.integers(0, 256, size=(3, 4, 4, 8)).astype(np.float32) / 255.0
+    place = rng.random((3, 5), dtype=np.float32)
+    ids, prev = [], -1
+    for k in range(3):  # one agent's episode: its stack shifts by a frame each step
+        stack = np.stack([frames[max(0, k - 2 + j)] for j in range(3)], axis=1)
+        row = np.concatenate([stack.reshape(-1), place[k]])[None]
+        ids.append(int(store.add(row, np.array([prev]))[0]))
+        prev = ids[-1]
+    got = store.get(np.array(ids))
+    np.testing.assert_allclose(got[:, n_map:], place)
+    last = got[2, :n_map].reshape(shape)
+    np.testing.assert_allclose(last, np.stack([frames[0], frames[1], frames[2]], axis=1), atol=1e-6)
+    first = got[0, :n_map].reshape(shape)  # the first frame fills the older slots
+    np.testing.assert_allclose(first, np.stack([frames[0]] * 3, axis=1), atol=1e-6)
+    assert store.added == 3
+
+
+def test_the_map_reader_reads_the_place_and_the_map():
+    from latentdrive.config import ObservationConfig
+
+    torch.manual_seed(0)
+    obs = ObservationConfig()
+    net = MOD["MapPoseNet"](obs, 32)
+    x = torch.rand(3, net.n_map + 5)
+    q = net(x)
+    assert q.shape == (3, 5)
+    moved_place, moved_map = x.clone(), x.clone()
+    moved_place[:, net.n_map:] += 0.5
+    moved_map[:, : net.n_map] = torch.rand(3, net.n_map)
+    assert not torch.allclose(net(moved_place), q) and not torch.allclose(net(moved_map), q)
+
+
+def test_the_map_reader_stores_each_transition_one_decision_on_across_auto_resets():
+    # As the exact-state test above, through the map reader's store: the place's time must
+    # advance by one decision, and the next map stack must be the stack shifted by one frame.
+    import argparse
+
+    from latentdrive.rl.dqn import DQNConfig
+    from latentdrive.scenarios import get_spec
+    from latentdrive.scenarios.spec import RewardConfig
+
+    args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=200, radius=80.0,
+                              no_route=True, no_pose=False, no_time=False, view_box=None, out=None,
+                              eval_every=0, eval_episodes=1, reader="map", precision="fp32")
+    cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
+    _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
+    n = replay.added
+    assert n >= 200 and 0 < replay.terminated[:n].sum() < n
+    before, after = replay.store.get(replay.obs_id[:n]), replay.store.get(replay.next_id[:n])
+    np.testing.assert_allclose(after[:, -1] - before[:, -1], 1.0 / get_spec("roundabout").duration, atol=1e-6)
+    shape = replay.store.shape
+    maps_before = before[:, : replay.store.n_map].reshape(n, *shape)
+    maps_after = after[:, : replay.store.n_map].reshape(n, *shape)
+    np.testing.assert_array_equal(maps_after[:, :, :-1], maps_before[:, :, 1:])
+    assert not np.array_equal(maps_after[:, :, -1], maps_before[:, :, -1])
+
+
+def test_a_transition_leads_to_the_ended_episodes_last_maps_not_the_next_ones_first():
+    from latentdrive.rollout import StepRecord
+
+    shape = (2, 3, 4, 1, 2, 2)
+    agents = type("Agents", (), {"active": np.ones((2, 3), dtype=bool)})()
+    obs, next_obs, after = (np.full(shape, v, dtype=np.float32) for v in (0.1, 0.2, 0.3))
+    scenes = np.array([object(), object()], dtype=object)
+    rec = StepRecord(obs, np.zeros((2, 3), dtype=np.int64), agents, next_obs, np.array([True, False]), after, [],
+                     scenes, None, None)
+    inp = MOD["next_input"](rec, np.array(["a", "b"], dtype=object), None)
+    assert inp.obs is next_obs and inp.scenes is scenes and inp.active is agents.active
+
+
+def test_outcome_files_are_read_back_and_bad_ones_named(tmp_path):
+    import json
+
+    from latentdrive.outcome import outcomes_to_json
+
+    outcomes = evaluate_policy(lambda: lambda inp: np.zeros(inp.active.shape, dtype=np.int64), ["roundabout"], 2,
+                               envs=2, observation=MOD["TINY_MAP"])
+    good = tmp_path / "a.json"
+    good.write_text(json.dumps(outcomes_to_json(outcomes)))
+    back = MOD["read_outcomes"](str(good))
+    assert [(o.seed, o.failed) for o in back] == [(o.seed, o.failed) for o in outcomes]
+    assert "mixed" in MOD["pair"](back, outcomes, ("a", "b"))
+    bad = tmp_path / "b.json"
+    bad.write_text("{")
+    with pytest.raises(ValueError, match=r"b\.json: not an outcomes file"):
+        MOD["read_outcomes"](str(bad))
+    with pytest.raises(ValueError, match="not the same evaluation episodes"):
+        MOD["pair"](back, back[:1], ("a", "b"))
