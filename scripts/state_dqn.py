@@ -18,7 +18,12 @@ added to its own token through a small MLP (:class:`MapPoseNet`); ``--no-pose`` 
 place, leaving the map alone. The pair asks whether the place that the ego-centred map does
 not show is what separates the map's policies from the exact-state learner inside the map's
 view (``--no-route --view-box``). The place is in world coordinates: a policy that leans on
-it has learned the preset layouts, not roads it has not seen.
+it has learned the preset layouts, not roads it has not seen. ``--aux SCALE`` (map reader
+only) asks whether the reader can learn to see the vehicles from a better signal than the
+rewards: after each Q update, an Adam step at ``SCALE`` × ``dqn.lr`` trains the reader and a
+head of its own to predict, from the map, the AV's speeds and its 12 nearest vehicles inside
+the map's view as the exact-state vector holds them (:func:`aux_targets`). The targets are
+used in training only; the policy reads the map.
 
 It is a diagnostic reference, not the paper's method: the state vector has no raster and no
 sensor noise, and holds the AV's route, which the paper's map does not. If this learner beats
@@ -33,7 +38,7 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
-        [--reader state|map] [--compare RUN] [--outcomes FILE.json]
+        [--reader state|map] [--aux SCALE] [--compare RUN] [--outcomes FILE.json]
     python scripts/state_dqn.py --pair A.json B.json
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
 
@@ -131,17 +136,32 @@ def features(inp: PolicyInput, specs: list[Any], k: int, radius: float, route: b
     return x
 
 
-def map_features(inp: PolicyInput, specs: list[Any], pose: bool = True, show_time: bool = True) -> NDArray[np.float32]:
+#: ``--aux``'s targets: the AV's speed and lane speed and its :data:`AUX_NEIGHBOURS` nearest
+#: vehicles inside the default map's view, as the exact-state vector holds them.
+AUX_NEIGHBOURS = 12
+N_AUX = 2 + AUX_NEIGHBOURS * PER_NEIGHBOUR
+
+
+def aux_targets(inp: PolicyInput, specs: list[Any]) -> NDArray[np.float32]:
+    """``--aux``'s targets ``(num_envs, n_av, N_AUX)``: what the map draws, from the Scene."""
+    x = features(inp, specs, AUX_NEIGHBOURS, 80.0, False, True, MAP_VIEW)
+    return np.concatenate([x[..., :2], x[..., POSE.stop:]], axis=-1)
+
+
+def map_features(inp: PolicyInput, specs: list[Any], pose: bool = True, show_time: bool = True,
+                 aux: bool = False) -> NDArray[np.float32]:
     """``--reader map``'s input ``(num_envs, n_av, 4·T·H·W + N_POSE)``: each agent's stacked
     VelocityMap, flattened, then :data:`POSE` (zeroed without ``pose``; its time alone zeroed
-    without ``show_time``)."""
+    without ``show_time``); with ``aux``, :func:`aux_targets` after them (``N_AUX`` more),
+    which the replay keeps for ``--aux`` and the network does not read."""
     e, a = inp.obs.shape[:2]
     place = batch_features(inp, specs, 0, 0.0, False)[..., POSE]
     if not pose:
         place[:] = 0.0
     if not show_time:
         place[..., TIME - POSE.start] = 0.0
-    return np.concatenate([inp.obs.reshape(e, a, -1), place], axis=-1, dtype=np.float32)
+    parts = [inp.obs.reshape(e, a, -1), place] + ([aux_targets(inp, specs)] if aux else [])
+    return np.concatenate(parts, axis=-1, dtype=np.float32)
 
 
 class MapAndPose:
@@ -150,11 +170,11 @@ class MapAndPose:
     (the newest frame, uint8, linked to the agent's previous one), its place to a
     :class:`~latentdrive.rl.replay.LatentStore`. Both are filled together, so their ids agree."""
 
-    def __init__(self, capacity: int, shape: tuple[int, int, int, int]) -> None:
+    def __init__(self, capacity: int, shape: tuple[int, int, int, int], extra: int = N_POSE) -> None:
         self.capacity, self.added, self.shape = int(capacity), 0, shape
         self.n_map = int(np.prod(shape))
         self.maps = FrameStore(capacity, shape)
-        self.place = LatentStore(capacity, (N_POSE,))
+        self.place = LatentStore(capacity, (extra,))  # the place, and --aux's targets
 
     def add(self, obs: NDArray[np.float32], prev: NDArray[np.int64]) -> NDArray[np.int64]:
         ids = self.maps.add(obs[:, : self.n_map].reshape(-1, *self.shape), prev)
@@ -183,19 +203,38 @@ class MapPoseNet(nn.Module):
     own token before it queries the others. A zero place adds a constant, so ``--no-pose``
     reads the map alone with the same parameters."""
 
-    def __init__(self, obs: ObservationConfig, hidden: int, width: int = 64, heads: int = 4) -> None:
+    def __init__(self, obs: ObservationConfig, hidden: int, width: int = 64, heads: int = 4, aux: int = 0) -> None:
         super().__init__()
         self.shape = obs.shape
         self.n_map = int(np.prod(self.shape))
         self.body = MapAttentionBody(self.shape, obs.resolution, obs.behind, width=width, heads=heads, hidden=hidden)
         self.place = nn.Sequential(nn.Linear(N_POSE, width), nn.ReLU(), nn.Linear(width, width))
         self.me = self.body.me[0] * self.body.cols + self.body.me[1]
+        #: ``--aux``: predicts :func:`aux_targets` from what the Q head reads.
+        self.aux = nn.Sequential(nn.Linear(2 * width, hidden), nn.ReLU(), nn.Linear(hidden, aux)) if aux else None
+
+    def summary(self, x: torch.Tensor) -> torch.Tensor:
+        """What the heads read, ``(B, 2·width)``, from :func:`map_features` rows ``(B, ≥ n_map + N_POSE)``."""
+        tokens = self.body.tokens(x[:, : self.n_map].reshape(-1, *self.shape))
+        mine = tokens[:, self.me] + self.place(x[:, self.n_map: self.n_map + N_POSE])
+        tokens = torch.cat([tokens[:, : self.me], mine[:, None], tokens[:, self.me + 1:]], dim=1)
+        return self.body.summary(tokens, self.me)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        tokens = self.body.tokens(x[:, : self.n_map].reshape(-1, *self.shape))
-        mine = tokens[:, self.me] + self.place(x[:, self.n_map:])
-        tokens = torch.cat([tokens[:, : self.me], mine[:, None], tokens[:, self.me + 1:]], dim=1)
-        return self.body.read(tokens, self.me)
+        return self.body.head(self.summary(x))
+
+
+def aux_step(net: MapPoseNet, opt: torch.optim.Optimizer, obs: torch.Tensor, dtype: torch.dtype) -> float:
+    """One step of ``--aux``: the squared error of ``net.aux``'s prediction of the
+    :func:`aux_targets` that ``obs``'s rows end with; the loss."""
+    assert net.aux is not None
+    with autocast(dtype, CPU):
+        pred = net.aux(net.summary(obs))
+    loss = torch.nn.functional.mse_loss(pred.float(), obs[:, net.n_map + N_POSE:])
+    opt.zero_grad()
+    loss.backward()
+    opt.step()
+    return float(loss.detach())
 
 
 class StatePolicy:
@@ -206,16 +245,17 @@ class StatePolicy:
     def __init__(self, net: nn.Module, k: int, radius: float, route: bool,
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
                  pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True,
-                 reader: str = "state", dtype: torch.dtype = torch.float32) -> None:
+                 reader: str = "state", dtype: torch.dtype = torch.float32, aux: bool = False) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
         self.pose, self.view_box, self.show_time, self.reader, self.dtype = pose, view_box, show_time, reader, dtype
+        self.aux = aux
         self.latest: NDArray[np.float32] | None = None
 
     def read(self, inp: PolicyInput) -> NDArray[np.float32]:
         """This policy's input ``(num_envs, n_av, F)`` for ``inp``."""
         specs = list(inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios])
         if self.reader == "map":
-            return map_features(inp, specs, self.pose, self.show_time)
+            return map_features(inp, specs, self.pose, self.show_time, self.aux)
         return features(inp, specs, self.k, self.radius, self.route, self.pose, self.view_box, self.show_time)
 
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
@@ -281,10 +321,11 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     capacity = 2 * cfg.buffer_size + (2 * cfg.n_step + 4 + 2 * ObservationConfig().frames) * args.envs * vec.n_av
     net: nn.Module
     store: Any
+    aux = float(getattr(args, "aux", 0.0))
     if reader(args) == "map":
-        net = MapPoseNet(ObservationConfig(), args.hidden)
-        n_in, what = net.n_map + N_POSE, "map reader and place"
-        store = MapAndPose(capacity, net.shape)
+        net = MapPoseNet(ObservationConfig(), args.hidden, aux=N_AUX if aux else 0)
+        n_in, what = net.n_map + N_POSE, "map reader and place" + (f", auxiliary targets at {aux:g} x lr" if aux else "")
+        store = MapAndPose(capacity, net.shape, N_POSE + (N_AUX if aux else 0))
     else:
         n_in, what = state_size(args.neighbours, route), args.arch
         net = (EgoAttention(state_size(0, route), PER_NEIGHBOUR, args.neighbours, args.hidden)
@@ -292,6 +333,10 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
         store = LatentStore(capacity, (n_in,))
     target = copy.deepcopy(net).requires_grad_(False)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, eps=cfg.adam_eps)
+    # --aux takes its own Adam steps on the same weights, so the Q-learner's update stays the
+    # project's own (rl.dqn.update) and its moments are not mixed with the auxiliary loss's.
+    # Adam's steps do not scale with the loss, so --aux scales their learning rate instead.
+    aux_opt = torch.optim.Adam(net.parameters(), lr=aux * cfg.lr, eps=cfg.adam_eps) if aux else None
     print(f"state DQN: {n_in} inputs, {sum(p.numel() for p in net.parameters()):,} parameters, {what}, {dtype}")
     slots = (args.envs, vec.n_av)
     replay = Replay(cfg.buffer_size, store)
@@ -299,7 +344,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     transitions = updates = 0
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
                          pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time,
-                         reader=reader(args), dtype=dtype)
+                         reader=reader(args), dtype=dtype, aux=bool(aux))
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -319,7 +364,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     t0 = time.perf_counter()
     next_eval = args.eval_every or args.steps + 1
     bar = tqdm(total=args.steps, desc="agent-transitions", unit="tr", mininterval=15)
-    loss = float("nan")
+    loss = aux_loss = float("nan")
     specs = list(vec.simulator.specs)
     names = np.asarray([s.name for s in specs], dtype=object)
     for rec in rollout(vec, act, seed=train_reset_seed(args.seed, 0)):
@@ -337,11 +382,15 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
         transitions += len(ei)
         bar.update(len(ei))
         for _ in range(max(0, updates_owed(cfg, transitions) - updates)):
-            stats = update(net, target, opt, replay.sample(rng, cfg.batch_size), cfg, dtype)
+            batch = replay.sample(rng, cfg.batch_size)
+            stats = update(net, target, opt, batch, cfg, dtype)
             loss = stats.loss
+            if aux_opt is not None:
+                assert isinstance(net, MapPoseNet)
+                aux_loss = aux_step(net, aux_opt, batch.obs, dtype)
             updates += 1
             target_step(target, net, cfg, updates)
-        bar.set_postfix(loss=f"{loss:.3f}", eps=f"{epsilon(cfg, transitions, args.steps):.2f}", refresh=False)
+        bar.set_postfix(loss=f"{loss:.3f}", aux=f"{aux_loss:.3f}", eps=f"{epsilon(cfg, transitions, args.steps):.2f}", refresh=False)
         if transitions >= next_eval or transitions >= args.steps:
             rate = float(np.mean([o.failed for o in evaluate(net, args, scenarios, args.eval_episodes,
                                                              validation_reset_seed(0))]))
@@ -406,6 +455,11 @@ def main() -> int:
     ap.add_argument("--arch", choices=("attention", "mlp"), default="attention")
     ap.add_argument("--reader", choices=("state", "map"), default="state",
                     help="read exact states (default) or the VelocityMap with the AV's place (module docstring)")
+    ap.add_argument("--aux", type=float, default=0.0, metavar="SCALE",
+                    help="with --reader map: after each Q update, also train the reader to predict, from the map, "
+                         "the AV's speeds and its 12 nearest vehicles inside the map's view (exact states), by "
+                         "squared error, with Adam at SCALE times dqn.lr (default 0: off); the policy still reads "
+                         "the map alone")
     ap.add_argument("--precision", choices=PRECISIONS, default="fp32",
                     help="the network's compute precision, as train-policy's precision (default fp32)")
     ap.add_argument("--hidden", type=int, default=256)
@@ -436,6 +490,8 @@ def main() -> int:
             ap.error(f"--{name.replace('_', '-')} must be at least 1")
     if args.eval_every < 0:
         ap.error("--eval-every must be at least 0")
+    if args.aux < 0 or (args.aux and args.reader != "map"):
+        ap.error("--aux takes a scale of at least 0, and only with --reader map")
     if args.view_box is not None:
         try:
             box = tuple(float(v) for v in args.view_box.split(","))

@@ -118,12 +118,17 @@ class MapAttentionBody(nn.Module):
             f = f + torch.relu(conv(f))
         return f.flatten(2).transpose(1, 2) + self.position(self.grid.to(f.dtype))
 
-    def read(self, tokens: Tensor, me: int) -> Tensor:
-        """Q-values ``(B, n_actions)`` from ``tokens`` ``(B, N, width)``, token ``me`` the
-        observer's. The other tokens are read as a set: their order does not matter."""
+    def summary(self, tokens: Tensor, me: int) -> Tensor:
+        """What the head reads, ``(B, 2·width)``: the observer's query from ``tokens``
+        ``(B, N, width)`` (token ``me`` the observer's) and what it attended to. The other
+        tokens are read as a set: their order does not matter."""
         query = self.query(tokens[:, me])
         mixed, _ = self.attend(query[:, None], tokens, tokens, need_weights=False)
-        z = torch.cat([query, mixed[:, 0]], dim=1)
+        return torch.cat([query, mixed[:, 0]], dim=1)
+
+    def read(self, tokens: Tensor, me: int) -> Tensor:
+        """Q-values ``(B, n_actions)`` from ``tokens`` ``(B, N, width)`` (:meth:`summary`)."""
+        z = self.summary(tokens, me)
         if not self.dueling:
             return self.head(z)
         adv = self.advantage(z)

@@ -250,3 +250,29 @@ def test_outcome_files_are_read_back_and_bad_ones_named(tmp_path):
         MOD["read_outcomes"](str(bad))
     with pytest.raises(ValueError, match="not the same evaluation episodes"):
         MOD["pair"](back, back[:1], ("a", "b"))
+
+
+def test_the_auxiliary_targets_are_the_avs_speeds_and_its_neighbours_inside_the_view():
+    from latentdrive.scenarios import get_spec
+
+    inp, spec = _input_after("intersection", 2, 5, 4), get_spec("intersection")
+    boxed = MOD["features"](inp, [spec, spec], 12, 80.0, False, True, MOD["MAP_VIEW"])
+    aux = MOD["aux_targets"](inp, [spec, spec])
+    assert aux.shape == (*inp.active.shape, MOD["N_AUX"])
+    assert np.array_equal(aux[..., :2], boxed[..., :2]) and np.array_equal(aux[..., 2:], boxed[..., 7:])
+    assert np.any(aux[..., 2:] != 0)  # some neighbour is in view
+
+
+def test_an_auxiliary_step_teaches_the_reader_the_targets():
+    from latentdrive.config import ObservationConfig
+
+    torch.manual_seed(0)
+    net = MOD["MapPoseNet"](ObservationConfig(), 64, aux=MOD["N_AUX"])
+    n_in = net.n_map + 5
+    obs = torch.cat([torch.rand(16, n_in), torch.rand(16, MOD["N_AUX"])], dim=1)
+    opt = torch.optim.Adam(net.parameters(), lr=1e-3)
+    first = MOD["aux_step"](net, opt, obs, torch.float32)
+    for _ in range(150):
+        last = MOD["aux_step"](net, opt, obs, torch.float32)
+    assert last < 0.2 * first
+    assert net(obs).shape == (16, 5) and torch.equal(net(obs), net(obs[:, :n_in]))  # the targets are not read
