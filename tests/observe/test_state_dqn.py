@@ -276,3 +276,20 @@ def test_an_auxiliary_step_teaches_the_reader_the_targets():
         last = MOD["aux_step"](net, opt, obs, torch.float32)
     assert last < 0.2 * first
     assert net(obs).shape == (16, 5) and torch.equal(net(obs), net(obs[:, :n_in]))  # the targets are not read
+
+
+@pytest.mark.parametrize("argv", [["--aux", "1"], ["--reader", "map", "--aux", "-1"]])
+def test_auxiliary_targets_need_the_map_reader_and_a_scale_of_at_least_zero(argv, monkeypatch, capsys):
+    monkeypatch.setattr("sys.argv", ["state_dqn.py", *argv])
+    with pytest.raises(SystemExit) as exit_:
+        MOD["main"]()
+    assert exit_.value.code == 2 and "--aux takes a scale of at least 0, and only with --reader map" in capsys.readouterr().err
+
+
+def test_pairing_files_of_other_episodes_is_a_one_line_error(tmp_path, monkeypatch, capsys):
+    (tmp_path / "a.json").write_text("[]")
+    monkeypatch.setattr("sys.argv", ["state_dqn.py", "--pair", str(tmp_path / "a.json"), str(tmp_path / "missing.json")])
+    with pytest.raises(SystemExit) as exit_:
+        MOD["main"]()
+    err = capsys.readouterr().err
+    assert exit_.value.code == 1 and "missing.json: not an outcomes file" in err and err.count("\n") == 1
