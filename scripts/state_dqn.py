@@ -38,9 +38,9 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
-        [--reader state|map] [--aux SCALE] [--compare RUN] [--outcomes FILE.json]
-    python scripts/state_dqn.py --pair A.json B.json
+        [--reader state|map] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
+    python scripts/state_dqn.py --pair A.json B.json
 
 ``--compare RUN`` also plays a ``train-policy`` run's greedy policy (on its own map) on the
 test set and pairs it with this one. ``--outcomes`` writes the test episodes' outcomes;
@@ -73,6 +73,7 @@ from torch import nn
 from tqdm import tqdm
 
 from latentdrive.config import ConfigError, ObservationConfig, parse_override_args, validate
+from latentdrive.errors import LatentDriveError
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.report import compare, format_compare, format_table, policy_report
 from latentdrive.evaluate.run import evaluate_policy
@@ -142,10 +143,10 @@ AUX_NEIGHBOURS = 12
 N_AUX = 2 + AUX_NEIGHBOURS * PER_NEIGHBOUR
 
 
-def aux_targets(inp: PolicyInput, specs: list[Any]) -> NDArray[np.float32]:
-    """``--aux``'s targets ``(num_envs, n_av, N_AUX)``: what the map draws, from the Scene."""
-    x = features(inp, specs, AUX_NEIGHBOURS, 80.0, False, True, MAP_VIEW)
-    return np.concatenate([x[..., :2], x[..., POSE.stop:]], axis=-1)
+def aux_targets(state: NDArray[np.float32]) -> NDArray[np.float32]:
+    """``--aux``'s targets ``(..., N_AUX)`` from :func:`features` of :data:`AUX_NEIGHBOURS`
+    neighbours without the route, inside :data:`MAP_VIEW`: what the map draws."""
+    return np.concatenate([state[..., :2], state[..., POSE.stop:]], axis=-1)
 
 
 def map_features(inp: PolicyInput, specs: list[Any], pose: bool = True, show_time: bool = True,
@@ -155,12 +156,10 @@ def map_features(inp: PolicyInput, specs: list[Any], pose: bool = True, show_tim
     without ``show_time``); with ``aux``, :func:`aux_targets` after them (``N_AUX`` more),
     which the replay keeps for ``--aux`` and the network does not read."""
     e, a = inp.obs.shape[:2]
-    place = batch_features(inp, specs, 0, 0.0, False)[..., POSE]
-    if not pose:
-        place[:] = 0.0
-    if not show_time:
-        place[..., TIME - POSE.start] = 0.0
-    parts = [inp.obs.reshape(e, a, -1), place] + ([aux_targets(inp, specs)] if aux else [])
+    # One pass over the Scenes gives the place and, with aux, the targets. 80 m reaches every
+    # corner of MAP_VIEW's box (at most 68 m away).
+    state = features(inp, specs, AUX_NEIGHBOURS if aux else 0, 80.0, False, pose, MAP_VIEW, show_time)
+    parts = [inp.obs.reshape(e, a, -1), state[..., POSE]] + ([aux_targets(state)] if aux else [])
     return np.concatenate(parts, axis=-1, dtype=np.float32)
 
 
@@ -168,7 +167,8 @@ class MapAndPose:
     """The replay's observation store for ``--reader map``: each observation is a
     :func:`map_features` row; its map goes to a :class:`~latentdrive.rl.replay.FrameStore`
     (the newest frame, uint8, linked to the agent's previous one), its place to a
-    :class:`~latentdrive.rl.replay.LatentStore`. Both are filled together, so their ids agree."""
+    :class:`~latentdrive.rl.replay.LatentStore`. Both are filled together, so their ids agree.
+    The script keeps no checkpoint, so the store has no ``state``/``load_state``."""
 
     def __init__(self, capacity: int, shape: tuple[int, int, int, int], extra: int = N_POSE) -> None:
         self.capacity, self.added, self.shape = int(capacity), 0, shape
@@ -185,15 +185,6 @@ class MapAndPose:
     def get(self, ids: NDArray[np.int64]) -> NDArray[np.float32]:
         maps = self.maps.get(ids).reshape(len(ids), -1)
         return np.concatenate([maps, self.place.get(ids)], axis=1)
-
-    def state(self) -> dict[str, np.ndarray]:
-        return {**{f"maps.{k}": v for k, v in self.maps.state().items()},
-                **{f"place.{k}": v for k, v in self.place.state().items()}}
-
-    def load_state(self, arrays: dict[str, np.ndarray]) -> None:
-        self.maps.load_state({k.removeprefix("maps."): v for k, v in arrays.items() if k.startswith("maps.")})
-        self.place.load_state({k.removeprefix("place."): v for k, v in arrays.items() if k.startswith("place.")})
-        self.added = self.maps.added
 
 
 class MapPoseNet(nn.Module):
@@ -278,25 +269,17 @@ def next_input(rec: StepRecord, names: NDArray[np.object_], simulator: Any) -> P
     return PolicyInput(rec.next_obs, rec.scenes, rec.agents.active, names, simulator)
 
 
-def reader(args: argparse.Namespace) -> str:
-    return str(getattr(args, "reader", "state"))
-
-
-def precision(args: argparse.Namespace) -> torch.dtype:
-    return resolve_precision(getattr(args, "precision", "fp32"), CPU)
-
-
 def env_map(args: argparse.Namespace) -> dict[str, Any]:
     """The ``observation`` overrides of the envs: the map is rendered only to be read."""
-    return MAP if reader(args) == "map" else TINY_MAP
+    return MAP if args.reader == "map" else TINY_MAP
 
 
 def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], episodes: int,
              reset_seed: int | None = None) -> list[Any]:
     def make() -> Policy:
         return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
-                           view_box=args.view_box, show_time=not args.no_time, reader=reader(args),
-                           dtype=precision(args))
+                           view_box=args.view_box, show_time=not args.no_time, reader=args.reader,
+                           dtype=resolve_precision(args.precision, CPU))
 
     net.eval()
     try:
@@ -313,7 +296,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     torch.manual_seed(args.seed)
     rng = np.random.default_rng(np.random.SeedSequence([args.seed, 0x51]))
     route = not args.no_route
-    dtype = precision(args)
+    dtype = resolve_precision(args.precision, CPU)
     vec = make_vec(scenarios, args.envs, backend="fast", observation=env_map(args), reward=reward.model_dump())
     # Every step stores at most one next observation per agent and, for new episodes, one
     # first observation per agent; the replay's oldest entry reaches n-1 steps further back,
@@ -321,8 +304,8 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     capacity = 2 * cfg.buffer_size + (2 * cfg.n_step + 4 + 2 * ObservationConfig().frames) * args.envs * vec.n_av
     net: nn.Module
     store: Any
-    aux = float(getattr(args, "aux", 0.0))
-    if reader(args) == "map":
+    aux = float(args.aux)
+    if args.reader == "map":
         net = MapPoseNet(ObservationConfig(), args.hidden, aux=N_AUX if aux else 0)
         n_in, what = net.n_map + N_POSE, "map reader and place" + (f", auxiliary targets at {aux:g} x lr" if aux else "")
         store = MapAndPose(capacity, net.shape, N_POSE + (N_AUX if aux else 0))
@@ -344,7 +327,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     transitions = updates = 0
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
                          pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time,
-                         reader=reader(args), dtype=dtype, aux=bool(aux))
+                         reader=args.reader, dtype=dtype, aux=bool(aux))
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -418,12 +401,6 @@ def read_outcomes(path: str) -> list[EpisodeOutcome]:
         raise ValueError(f"{path}: not an outcomes file ({err})") from None
 
 
-def pair(a: list[EpisodeOutcome], b: list[EpisodeOutcome], names: tuple[str, str]) -> str:
-    """The paired comparison of two policies' outcomes on the same episodes (``ValueError``
-    naming an episode that only one of them played, otherwise)."""
-    return format_compare(compare(a, b), names)
-
-
 def configs(items: list[str]) -> tuple[DQNConfig, RewardConfig]:
     parsed = parse_override_args(items)
     bad = sorted(k for k in parsed if k.partition(".")[0] not in ("dqn", "reward") or not k.partition(".")[2])
@@ -476,14 +453,14 @@ def main() -> int:
     if args.pair:
         try:
             a, b = (read_outcomes(f) for f in args.pair)
-            print(pair(a, b, (Path(args.pair[0]).stem, Path(args.pair[1]).stem)))
+            print(format_compare(compare(a, b), (Path(args.pair[0]).stem, Path(args.pair[1]).stem)))
         except ValueError as err:
             ap.exit(1, f"error: {err}\n")
         return 0
     if args.compare:
         try:
             compared = load_policy_network(args.compare)
-        except Exception as err:  # the loader's errors name the run and the problem
+        except LatentDriveError as err:  # ConfigError, CheckpointError: they name the run and the problem
             ap.error(f"--compare {args.compare}: {err}")
     for name in ("steps", "envs", "neighbours", "hidden", "eval_episodes", "episodes"):
         if getattr(args, name) < 1:
@@ -521,7 +498,7 @@ def main() -> int:
     print(f"test set: the first {args.episodes} evaluation episodes per scenario (envs 16)")
     print(format_table({k: policy_report(o) for k, o in outcomes.items()}))
     for k in [k for k in outcomes if k != name]:
-        print(pair(outcomes[name], outcomes[k], (name, k)))
+        print(format_compare(compare(outcomes[name], outcomes[k]), (name, k)))
     return 0
 
 

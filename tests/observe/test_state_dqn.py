@@ -128,7 +128,7 @@ def test_each_stored_transition_leads_one_decision_on_across_auto_resets():
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=300, radius=80.0,
                               no_route=False, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1)
+                              eval_every=0, eval_episodes=1, reader="state", precision="fp32", aux=0.0)
     cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
     _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
     n = replay.added
@@ -205,7 +205,7 @@ def test_the_map_reader_stores_each_transition_one_decision_on_across_auto_reset
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=200, radius=80.0,
                               no_route=True, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1, reader="map", precision="fp32")
+                              eval_every=0, eval_episodes=1, reader="map", precision="fp32", aux=0.0)
     cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
     _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
     n = replay.added
@@ -243,13 +243,13 @@ def test_outcome_files_are_read_back_and_bad_ones_named(tmp_path):
     good.write_text(json.dumps(outcomes_to_json(outcomes)))
     back = MOD["read_outcomes"](str(good))
     assert [(o.seed, o.failed) for o in back] == [(o.seed, o.failed) for o in outcomes]
-    assert "mixed" in MOD["pair"](back, outcomes, ("a", "b"))
+    assert "mixed" in MOD["format_compare"](MOD["compare"](back, outcomes), ("a", "b"))
     bad = tmp_path / "b.json"
     bad.write_text("{")
     with pytest.raises(ValueError, match=r"b\.json: not an outcomes file"):
         MOD["read_outcomes"](str(bad))
     with pytest.raises(ValueError, match="not the same evaluation episodes"):
-        MOD["pair"](back, back[:1], ("a", "b"))
+        MOD["compare"](back, back[:1])
 
 
 def test_the_auxiliary_targets_are_the_avs_speeds_and_its_neighbours_inside_the_view():
@@ -257,10 +257,14 @@ def test_the_auxiliary_targets_are_the_avs_speeds_and_its_neighbours_inside_the_
 
     inp, spec = _input_after("intersection", 2, 5, 4), get_spec("intersection")
     boxed = MOD["features"](inp, [spec, spec], 12, 80.0, False, True, MOD["MAP_VIEW"])
-    aux = MOD["aux_targets"](inp, [spec, spec])
-    assert aux.shape == (*inp.active.shape, MOD["N_AUX"])
+    x = MOD["map_features"](inp, [spec, spec], aux=True)
+    aux = x[..., -MOD["N_AUX"]:]
+    assert x.shape[-1] == int(np.prod(inp.obs.shape[2:])) + 5 + MOD["N_AUX"]
     assert np.array_equal(aux[..., :2], boxed[..., :2]) and np.array_equal(aux[..., 2:], boxed[..., 7:])
     assert np.any(aux[..., 2:] != 0)  # some neighbour is in view
+    # The place before them is the map reader's, whether or not the targets follow.
+    plain = MOD["map_features"](inp, [spec, spec])
+    assert np.array_equal(x[..., : plain.shape[-1]], plain)
 
 
 def test_an_auxiliary_step_teaches_the_reader_the_targets():
