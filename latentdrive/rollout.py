@@ -78,6 +78,10 @@ class StepRecord(NamedTuple):
     clean_obs: NDArray[np.float32] | None = None
     #: The noise-free ``next_obs`` (the ended episode's final one where ``ended``), else None.
     clean_next_obs: NDArray[np.float32] | None = None
+    #: ``(num_envs,)`` the Scenes ``obs`` shows (those the policy acted on).
+    acted_scenes: NDArray[np.object_] | None = None
+    #: ``(num_envs,)`` the Scenes ``obs_after`` shows (new episodes' first where ``ended``).
+    scenes_after: NDArray[np.object_] | None = None
 
 
 class _Tally:
@@ -173,7 +177,7 @@ def rollout(env: DrivingVecEnv, policy: Policy, seed: int | None) -> Iterator[St
                 cause = failure_cause(last_scenes[e], before)
                 outcomes.append(tally.close(int(e), str(scenarios[e]), int(seeds[e]), cause))
         yield StepRecord(obs, actions, agents, next_obs, ended, obs_after, outcomes, last_scenes,
-                         clean, clean_next)
+                         clean, clean_next, scenes, info["scene"])
         obs, clean = obs_after, clean_after
         active = np.where(ended[:, None], True, agents.active)
 

@@ -4,12 +4,13 @@ One file holds everything needed to continue a run exactly where it stopped:
 
 - tensors ``model/<name>``: the model's ``state_dict``;
 - tensors ``optim/<param index>/<key>``: the optimizer's per-parameter tensor state
-  (e.g. Adam's ``exp_avg``, ``exp_avg_sq``, ``step``);
+  (e.g. Adam's ``exp_avg``, ``exp_avg_sq``, ``step``); ``optim-<name>/<param index>/<key>``
+  that of each further optimizer named in ``extra_optimizers``;
 - tensor ``rng/torch``: a ``torch.Generator`` state (uint8), when one is given;
 - tensors ``extra/<name>``: caller tensors (e.g. CUDA generator states);
 - header metadata (strings): ``format``, ``version``, ``state``, a JSON document with the
   step, the epoch, the caller's config, the optimizer's class, param groups and
-  non-tensor per-parameter state, the numpy ``Generator.bit_generator.state`` and caller
+  non-tensor per-parameter state (and each further optimizer's), the numpy ``Generator.bit_generator.state`` and caller
   ``extra`` values; and ``digest``, a SHA-256 over every tensor's name, dtype, shape and
   bytes and over the ``state`` text, which catches corruption the safetensors header
   check cannot see, in the tensors and in the state alike. (Version 1 files, whose digest
@@ -28,6 +29,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -149,33 +151,22 @@ def save_checkpoint(
     numpy_generator: np.random.Generator | None = None,
     extra: Mapping[str, Any] | None = None,
     extra_tensors: Mapping[str, torch.Tensor] | None = None,
+    extra_optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
 ) -> Path:
     """Write a checkpoint atomically to ``path`` (conventionally ``*.safetensors``).
 
     ``step`` counts optimizer steps taken, ``epoch`` epochs completed. ``config`` and
     ``extra`` must be JSON-serializable mappings (pydantic configs: ``model_dump(mode="json")``).
+    ``extra_optimizers``, by name (letters, digits, ``_``): optimizers beside ``optimizer``,
+    over ``model``'s parameters or others, for :func:`load_checkpoint` to restore by the same names.
     """
     tensors: dict[str, torch.Tensor] = {}
     # Clone so that tensors sharing storage (tied weights, views) serialize independently.
     for name, t in model.state_dict().items():
         tensors[f"model/{name}"] = t.detach().cpu().clone().contiguous()
 
-    optim_json: dict[str, Any] | None = None
-    if optimizer is not None:
-        sd = optimizer.state_dict()
-        scalar_state: dict[str, dict[str, Any]] = {}
-        for pid, st in sd["state"].items():
-            for key, val in st.items():
-                if isinstance(val, torch.Tensor):
-                    tensors[f"optim/{pid}/{key}"] = val.detach().cpu().clone().contiguous()
-                else:
-                    scalar_state.setdefault(str(pid), {})[key] = _to_json(val)
-        optim_json = {
-            "class": type(optimizer).__name__,
-            "param_groups": _to_json(sd["param_groups"]),
-            "state_ids": [int(pid) for pid in sd["state"]],
-            "scalar_state": scalar_state,
-        }
+    optim_json = None if optimizer is None else _optimizer_entries(optimizer, "optim", tensors)
+    others = {name: _optimizer_entries(opt, f"optim-{name}", tensors) for name, opt in (extra_optimizers or {}).items()}
 
     if torch_generator is not None:
         tensors["rng/torch"] = torch_generator.get_state().clone()
@@ -187,6 +178,7 @@ def save_checkpoint(
         "epoch": int(epoch),
         "config": _to_json(dict(config or {})),
         "optimizer": optim_json,
+        **({"extra_optimizers": others} if others else {}),
         "numpy_rng": (
             None if numpy_generator is None else _to_json(numpy_generator.bit_generator.state)
         ),
@@ -200,6 +192,27 @@ def save_checkpoint(
         "state": state_text,
     }
     return atomic_write_bytes(path, st_save(tensors, metadata=metadata))
+
+
+def _optimizer_entries(optimizer: torch.optim.Optimizer, prefix: str, tensors: dict[str, torch.Tensor]) -> dict[str, Any]:
+    """Put ``optimizer``'s tensor state into ``tensors`` as ``<prefix>/<param id>/<key>``;
+    return the rest of its state, JSON values only."""
+    if not re.fullmatch(r"optim(-\w+)?", prefix):
+        raise ValueError(f"optimizer names are letters, digits and '_': {prefix!r}")
+    sd = optimizer.state_dict()
+    scalar_state: dict[str, dict[str, Any]] = {}
+    for pid, st in sd["state"].items():
+        for key, val in st.items():
+            if isinstance(val, torch.Tensor):
+                tensors[f"{prefix}/{pid}/{key}"] = val.detach().cpu().clone().contiguous()
+            else:
+                scalar_state.setdefault(str(pid), {})[key] = _to_json(val)
+    return {
+        "class": type(optimizer).__name__,
+        "param_groups": _to_json(sd["param_groups"]),
+        "state_ids": [int(pid) for pid in sd["state"]],
+        "scalar_state": scalar_state,
+    }
 
 
 # ---------------------------------------------------------------------------------------
@@ -290,13 +303,14 @@ def _describe_mismatch(
     return "; ".join(parts)
 
 
-def _optimizer_state(state: Mapping[str, Any], tensors: Mapping[str, torch.Tensor],
-                     optimizer: torch.optim.Optimizer,
+def _optimizer_state(oj: Mapping[str, Any] | None, tensors: Mapping[str, torch.Tensor],
+                     optimizer: torch.optim.Optimizer, prefix: str,
                      fail: Callable[[str], CheckpointError]) -> dict[str, Any]:
-    """The optimizer ``state_dict`` a checkpoint holds, checked against ``optimizer``."""
-    oj = state.get("optimizer")
+    """The optimizer ``state_dict`` a checkpoint holds (its JSON part ``oj``, its tensors
+    under ``prefix/``), checked against ``optimizer``."""
     if not oj:
-        raise fail("checkpoint holds no optimizer state")
+        raise fail("checkpoint holds no optimizer state" if prefix == "optim"
+                   else f"checkpoint holds no state of optimizer {prefix.removeprefix('optim-')!r}")
     if oj.get("class") != type(optimizer).__name__:
         have, want = type(optimizer).__name__, oj.get("class")
         raise fail(f"optimizer is {have} but the checkpoint holds {want}")
@@ -314,7 +328,7 @@ def _optimizer_state(state: Mapping[str, Any], tensors: Mapping[str, torch.Tenso
     for pid in oj["state_ids"]:
         opt_state[int(pid)] = dict(_from_json(oj["scalar_state"].get(str(pid), {})))
     for name, t in tensors.items():
-        if not name.startswith("optim/"):
+        if not name.startswith(f"{prefix}/"):
             continue
         _, pid_s, key = name.split("/", 2)
         pid = int(pid_s)
@@ -337,6 +351,7 @@ def load_checkpoint(
     *,
     torch_generator: torch.Generator | None = None,
     numpy_generator: np.random.Generator | None = None,
+    extra_optimizers: Mapping[str, torch.optim.Optimizer] | None = None,
 ) -> CheckpointInfo:
     """Load a checkpoint written by :func:`save_checkpoint` into ``model`` (and the rest).
 
@@ -358,10 +373,14 @@ def load_checkpoint(
     if mismatch:
         raise fail(f"checkpoint architecture differs from the model: {mismatch}")
 
-    optim_sd: dict[str, Any] | None = None
-    if optimizer is not None:
+    wanted = {"optim": optimizer} if optimizer is not None else {}
+    wanted.update({f"optim-{name}": opt for name, opt in (extra_optimizers or {}).items()})
+    optim_sds: dict[str, dict[str, Any]] = {}
+    for prefix, opt in wanted.items():
         try:
-            optim_sd = _optimizer_state(state, tensors, optimizer, fail)
+            oj = state.get("optimizer") if prefix == "optim" else \
+                (state.get("extra_optimizers") or {}).get(prefix.removeprefix("optim-"))
+            optim_sds[prefix] = _optimizer_state(oj, tensors, opt, prefix, fail)
         except (KeyError, TypeError, ValueError, AttributeError) as exc:
             if isinstance(exc, CheckpointError):
                 raise
@@ -375,8 +394,8 @@ def load_checkpoint(
     # Everything matches: only now modify the caller's objects.
     try:
         model.load_state_dict(file_sd, strict=True)
-        if optimizer is not None and optim_sd is not None:
-            optimizer.load_state_dict(optim_sd)
+        for prefix, opt in wanted.items():
+            opt.load_state_dict(optim_sds[prefix])
         if torch_generator is not None:
             torch_generator.set_state(tensors["rng/torch"])
         if numpy_generator is not None:

@@ -45,6 +45,8 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("dqn", "adam_eps"): 1e-8,
     ("dqn", "augment_shift"): 0,
     ("dqn", "explore_rule"): 0.0,
+    ("dqn", "aux_scale"): 0.0,
+    ("dqn", "aux_neighbours"): 12,
     ("keep",): "last",
     ("planner", "human_routes"): "known",
     ("vfan", "reader"): "conv",

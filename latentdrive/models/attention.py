@@ -135,5 +135,9 @@ class MapAttentionBody(nn.Module):
         # Subtracting the mean advantage makes V and A identifiable without moving the argmax.
         return self.value(z) + adv - adv.mean(dim=1, keepdim=True)
 
+    def embed(self, x: Tensor) -> Tensor:
+        """Maps ``(B, C, T, H, W)`` → what the head reads, ``(B, 2·width)`` (:meth:`summary`)."""
+        return self.summary(self.tokens(x), self.me[0] * self.cols + self.me[1])
+
     def forward(self, x: Tensor) -> Tensor:
         return self.read(self.tokens(x), self.me[0] * self.cols + self.me[1])

@@ -237,6 +237,18 @@ class QNetwork(nn.Module):
             stored = stored.reshape(stored.shape[0], -1, 1, 1, 1)
         return self.body(stored)
 
+    def summary(self, stored: Tensor) -> Tensor:
+        """Stored inputs ``(B, *stored_shape)`` → what the attention reader's head reads,
+        ``(B, 2·attention_width)`` (an auxiliary loss's input; reader 'attention' only)."""
+        if not isinstance(self.body, MapAttentionBody):
+            raise ValueError("only the attention reader (vfan.reader 'attention') exposes a summary")
+        return self.body.embed(stored)
+
+    @property
+    def summary_size(self) -> int:
+        """Length of :meth:`summary`'s rows."""
+        return 2 * self.cfg.attention_width
+
     def train(self, mode: bool = True) -> QNetwork:
         super().train(mode)
         if self.mode in LATENT_MODES and self.encoder is not None:

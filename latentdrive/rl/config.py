@@ -96,6 +96,9 @@ class PolicyTrainConfig(Config):
         if self.learner == "dagger" and (self.dqn.n_step > 1 or self.dqn.prioritized):
             raise ValueError("learner 'dagger' fits labels, not returns: dqn.n_step must be 1 and dqn.prioritized "
                              "false")
+        if self.dqn.aux_scale > 0 and (self.vfan.reader != "attention" or self.learner != "dqn"):
+            raise ValueError("dqn.aux_scale trains the attention reader's summary beside the Q-learner: it needs "
+                             "vfan.reader 'attention' (mode 'raw') and learner 'dqn'")
         if self.learner == "dagger" and (self.dqn.explore_rule > 0 or self.dqn.augment_shift > 0):
             raise ValueError("learner 'dagger' neither explores nor augments: dqn.explore_rule and "
                              "dqn.augment_shift must be 0")

@@ -41,6 +41,7 @@ from latentdrive.fileio import atomic_write_bytes, confined
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.augment import random_shift
+from latentdrive.rl.auxiliary import AuxLearning
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
 from latentdrive.rl.dqn import epsilon, priority_beta, target_step, update, updates_owed
 from latentdrive.rl.imitate import (
@@ -133,6 +134,9 @@ class Learner:
         self.losses: list[float] = []
         self.learn_seconds = 0.0  # wall time in updates (for the benchmark)
         self.cache = FeatureCache(net, device, self.dtype)
+        # dqn.aux_scale: targets of every stored observation, beside the store (rl.auxiliary).
+        self.aux = (AuxLearning(net, d, cfg.observation, self.replay.store.capacity, device)
+                    if d.aux_scale > 0 else None)
         self._weights = torch.ones(0)  # DAgger's class weights, as of replay.added == _weights_at
         self._weights_at = -1
         # keep 'best': the weights that failed least at a periodic evaluation so far.
@@ -151,11 +155,16 @@ class Learner:
             return expert_share(self.cfg.imitation, self.transitions, self.cfg.steps)
         return epsilon(self.cfg.dqn, self.transitions, self.cfg.steps)
 
-    def start_segment(self, obs_feats: torch.Tensor) -> np.ndarray:
-        """Store every agent's first observation; ids ``(num_envs, n_av)``."""
+    def start_segment(self, obs_feats: torch.Tensor, scenes: np.ndarray | None = None) -> np.ndarray:
+        """Store every agent's first observation (``scenes``: the Scenes they show, which
+        the auxiliary loss needs); ids ``(num_envs, n_av)``."""
         e, a = obs_feats.shape[:2]
         flat = obs_feats.reshape(e * a, *obs_feats.shape[2:]).cpu().numpy()
-        return self.replay.store.add(flat, np.full(e * a, -1, dtype=np.int64)).reshape(e, a)
+        ids = self.replay.store.add(flat, np.full(e * a, -1, dtype=np.int64))
+        if self.aux is not None:
+            assert scenes is not None
+            self.aux.add(self.aux.targets(scenes).reshape(e * a, -1), ids)
+        return ids.reshape(e, a)
 
     def record(self, rec: StepRecord, cur: np.ndarray, cache: FeatureCache,
                labels: np.ndarray | None = None) -> np.ndarray:
@@ -177,6 +186,9 @@ class Learner:
             nxt[torch.from_numpy(ended_rows)] = cache.encode(rec.next_obs[ei[ended_rows], ai[ended_rows]])
         store = self.replay.store
         next_ids = store.add(nxt.cpu().numpy(), cur[ei, ai])
+        if self.aux is not None:
+            # rec.scenes are those next_obs shows: the ended episode's last where it ended.
+            self.aux.add(self.aux.targets(rec.scenes)[ei, ai], next_ids)
         # terminated (crash, mission done) does not bootstrap; cut-off agents (another AV
         # crashed, time ran out, the segment ended) do: see rl.dqn.td_targets. The window
         # turns the one-step transitions into n-step ones (rl.nstep).
@@ -192,6 +204,9 @@ class Learner:
         for e in np.flatnonzero(rec.ended):
             flat = after[e].cpu().numpy()
             cur[e] = store.add(flat, np.full(len(flat), -1, dtype=np.int64))
+            if self.aux is not None:
+                assert rec.scenes_after is not None
+                self.aux.add(self.aux.targets(rec.scenes_after[e:e + 1])[0], cur[e])
         self.transitions += len(ei)
         self.episodes += len(rec.outcomes)
         return cur
@@ -232,6 +247,9 @@ class Learner:
                                    next_obs=random_shift(batch.next_obs, d.augment_shift, self.rng))
         stats = update(self.net, self.target, self.optimizer, batch, d, self.dtype)
         self.losses.append(stats.loss)
+        if self.aux is not None:
+            assert batch.slots is not None
+            self.aux.step(self.net, batch.obs, self.replay.obs_id[batch.slots], self.dtype)
         if batch.slots is not None and d.prioritized:
             self.replay.update_priorities(batch.slots, stats.td_error.cpu().numpy())
         self.updates += 1
@@ -257,7 +275,10 @@ class Learner:
     # ---- checkpoints ---------------------------------------------------------------
 
     def save(self, run_dir: Path, segment: int) -> None:
-        arrays = {k: np.ascontiguousarray(v) for k, v in self.replay.state().items()}
+        state = self.replay.state()
+        if self.aux is not None:
+            state.update({f"aux/{k}": v for k, v in self.aux.store.state().items()})
+        arrays = {k: np.ascontiguousarray(v) for k, v in state.items()}
         # The replay first, under a new name; then the checkpoint that names it (atomic);
         # only then are older replays removed. A kill anywhere leaves a consistent pair.
         # The checkpoint keeps the replay's digest: a damaged replay is refused on
@@ -267,6 +288,7 @@ class Learner:
         # chose them are written together.
         best = {} if self.best is None else {f"best/{k}": v for k, v in self.best.items()}
         kept = {} if self.best is None else {"best_failure": self.best_failure, "best_transitions": self.best_transitions}
+        aux = {} if self.aux is None else {f"aux_head/{k}": v for k, v in self.aux.head.state_dict().items()}
         atomic_write_bytes(run_dir / name, np_save(arrays, metadata={"replay_added": str(self.replay.added)}))
         save_checkpoint(
             run_dir / CHECKPOINT, self.net, self.optimizer, step=self.updates, epoch=segment,
@@ -274,7 +296,8 @@ class Learner:
             extra={"transitions": self.transitions, "updates": self.updates, "episodes": self.episodes,
                    "segment": segment, "replay_added": self.replay.added, "replay": name,
                    "replay_digest": tensors_digest({k: torch.from_numpy(v) for k, v in arrays.items()}), **kept},
-            extra_tensors={**{f"target/{k}": v for k, v in self.target.state_dict().items()}, **best},
+            extra_tensors={**{f"target/{k}": v for k, v in self.target.state_dict().items()}, **best, **aux},
+            extra_optimizers=None if self.aux is None else {"aux": self.aux.optimizer},
         )
         for old in run_dir.iterdir():
             if REPLAY_PATTERN.fullmatch(old.name) and old.name != name:
@@ -286,12 +309,16 @@ class Learner:
         The replay is restored only when there is training left to do: a finished run
         resumes to nothing and needs none.
         """
-        info = load_checkpoint(run_dir / CHECKPOINT, self.net, self.optimizer, numpy_generator=self.rng)
+        info = load_checkpoint(run_dir / CHECKPOINT, self.net, self.optimizer, numpy_generator=self.rng,
+                               extra_optimizers=None if self.aux is None else {"aux": self.aux.optimizer})
         target_sd = section(info.extra_tensors, "target/")
         try:
             self.target.load_state_dict(target_sd, strict=True)
+            if self.aux is not None:
+                self.aux.head.load_state_dict(section(info.extra_tensors, "aux_head/"), strict=True)
         except RuntimeError:
-            raise CheckpointError(f"{run_dir / CHECKPOINT}: target network does not match the model") from None
+            raise CheckpointError(f"{run_dir / CHECKPOINT}: target network or auxiliary head does not match the "
+                                  "model") from None
         try:
             self.transitions = int(info.extra["transitions"])
             self.updates = int(info.extra["updates"])
@@ -323,7 +350,12 @@ class Learner:
         if digest is not None and tensors_digest(tensors) != digest:
             raise CheckpointError(f"{path}: corrupt replay (checksum mismatch with {CHECKPOINT})")
         try:
-            self.replay.load_state({k: t.numpy() for k, t in tensors.items()})
+            arrays = {k: t.numpy() for k, t in tensors.items()}
+            if self.aux is not None:
+                self.aux.store.load_state({k.removeprefix("aux/"): v for k, v in arrays.items() if k.startswith("aux/")})
+                if self.aux.store.added != int(arrays["store/added"][0]):
+                    raise ValueError("auxiliary targets out of step with the stored observations")
+            self.replay.load_state(arrays)
         except (KeyError, TypeError, ValueError) as exc:
             raise CheckpointError(f"{path}: unusable replay ({first_line(exc)})") from None
         if self.replay.added != replay_added:
@@ -348,7 +380,7 @@ def learner_steps(learner: Learner, vec: Any, seed: int) -> Iterator[StepRecord]
     cur: np.ndarray | None = None
     for rec in rollout(vec, policy, seed=seed):
         if cur is None:
-            cur = learner.start_segment(cache(rec.obs))
+            cur = learner.start_segment(cache(rec.obs), rec.acted_scenes)
         cur = learner.record(rec, cur, cache, None if labels is None else labels.latest)
         learner.learn()
         yield rec
@@ -469,6 +501,10 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
             "transitions_per_s": (learner.transitions - start_transitions) / max(elapsed, 1e-9),
             "elapsed_s": round(elapsed_before + elapsed, 2),
         }
+        if learner.aux is not None:
+            # TensorBoard's train/aux_loss; metrics.csv keeps the columns every run has.
+            row["aux_loss"] = float(np.mean(learner.aux.losses)) if learner.aux.losses else float("nan")
+            learner.aux.losses.clear()
         log.write(METRICS, row, "train")
         final = learner.transitions >= cfg.steps
         evaluated = final or bool(cfg.eval_every and (segment + 1) % cfg.eval_every == 0)

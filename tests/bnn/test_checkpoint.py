@@ -326,3 +326,33 @@ def test_any_damage_is_an_error_or_changes_nothing(saved: Path, data: st.DataObj
     assert tensors.keys() == want_tensors.keys()
     assert all(torch.equal(tensors[k], want_tensors[k]) for k in tensors)
 
+
+
+def test_a_second_optimizer_over_the_same_weights_round_trips_by_name(tmp_path: Path) -> None:
+    model, opt = _trained()
+    aux = torch.optim.Adam(model.parameters(), lr=3e-3)
+    _one_more_step(model, aux)
+    path = save_checkpoint(tmp_path / "c.safetensors", model, opt, step=3, epoch=0, extra_optimizers={"aux": aux})
+    model2 = BottleneckNetwork(CFG)
+    opt2 = torch.optim.AdamW(model2.parameters(), lr=1.0)
+    aux2 = torch.optim.Adam(model2.parameters(), lr=1.0)
+    load_checkpoint(path, model2, opt2, extra_optimizers={"aux": aux2})
+    assert aux2.param_groups[0]["lr"] == 3e-3 and opt2.param_groups[0]["lr"] == 1e-2
+    # Each optimizer continues as its original does: the moments were not mixed up.
+    for o, m in ((aux, model), (opt, model)):
+        _one_more_step(m, o)
+    for o, m in ((aux2, model2), (opt2, model2)):
+        _one_more_step(m, o)
+    for t1, t2 in zip(model.parameters(), model2.parameters(), strict=True):
+        assert torch.equal(t1, t2)
+
+
+def test_an_optimizer_the_checkpoint_lacks_is_named(tmp_path: Path) -> None:
+    model, opt = _trained(steps=1)
+    path = save_checkpoint(tmp_path / "c.safetensors", model, opt, step=1, epoch=0)
+    aux = torch.optim.Adam(model.parameters())
+    with pytest.raises(CheckpointError, match="no state of optimizer 'aux'") as exc:
+        load_checkpoint(path, model, opt, extra_optimizers={"aux": aux})
+    _assert_one_line_naming(exc, path)
+    with pytest.raises(ValueError, match="letters, digits"):
+        save_checkpoint(tmp_path / "d.safetensors", model, opt, step=1, epoch=0, extra_optimizers={"a/b": aux})

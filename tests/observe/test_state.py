@@ -1,4 +1,5 @@
-"""The exact-state vector: literal geometry in the AV's frame, order, reach and the route bits."""
+"""The exact-state vector: literal geometry in the AV's frame, order, reach and the route bits;
+the view targets: the same rows for the vehicles inside each AV's map."""
 
 from __future__ import annotations
 
@@ -7,20 +8,32 @@ import math
 import numpy as np
 import pytest
 
-from latentdrive.observe.state import PER_NEIGHBOUR, ROUTE_BITS, nearest, state_features, state_size
+from latentdrive.config import ObservationConfig
+from latentdrive.observe.state import (
+    PER_NEIGHBOUR,
+    ROUTE_BITS,
+    nearest,
+    state_features,
+    state_size,
+    view_box,
+    view_target_size,
+    view_targets,
+)
 from latentdrive.scene import Kind, RoadRaster, Scene
 
 ROAD = RoadRaster(mask=np.ones((4, 4), dtype=np.uint8), origin=np.zeros(2), resolution=1.0)
 
 
-def _scene(rows: list[tuple[float, float, float, float, int]], route: int = 0, time: float = 0.0) -> Scene:
-    """Vehicles as (x, y, heading, speed, kind); vehicle 0 is the one AV agent."""
+def _scene(rows: list[tuple[float, float, float, float, int]], route: int = 0, time: float = 0.0,
+           agents: tuple[int, ...] = (0,)) -> Scene:
+    """Vehicles as (x, y, heading, speed, kind); ``agents`` the AV agents (vehicle 0 alone by default)."""
     a = np.array(rows, dtype=np.float64)
     n = len(rows)
     return Scene(position=a[:, :2], heading=a[:, 2], speed=a[:, 3], frenet_speed=a[:, 3] - 1.0,
                  length=np.full(n, 5.0), width=np.full(n, 2.0), kind=a[:, 4].astype(np.int8),
                  mask=np.ones(n, dtype=bool), crashed=np.array([False] + [True] * (n - 1)),
-                 agents=np.array([0]), road=ROAD, time=time, route=np.array([route], dtype=np.uint64))
+                 agents=np.array(agents), road=ROAD, time=time,
+                 route=np.full(len(agents), route, dtype=np.uint64))
 
 
 def test_a_car_ahead_and_to_the_right_of_an_av_heading_along_y() -> None:
@@ -60,3 +73,38 @@ def test_a_route_beyond_the_kept_bits_is_refused() -> None:
     scene = _scene([(0.0, 0.0, 0.0, 10.0, Kind.AV)], route=1 << ROUTE_BITS)
     with pytest.raises(ValueError, match="beyond the 32"):
         state_features(scene, 0, 15.0, k=1, radius=80.0, route=True)
+
+
+def test_the_view_box_is_the_default_maps_extent() -> None:
+    # 64 columns and 32 rows of 1.5 m cells, 32 m of them behind the observer.
+    assert view_box(ObservationConfig()) == (32.0, 64.0, 24.0)
+
+
+def test_view_targets_keep_the_vehicles_inside_each_avs_map_nearest_first() -> None:
+    # Two AVs at the origin heading +x (vehicle 0) and -x (vehicle 1, 10 m ahead of vehicle 0);
+    # humans 40 m behind vehicle 0 (outside its 32 m), 60 m ahead, and 30 m to its left
+    # (outside its 24 m), all heading +x.
+    scene = _scene([(0.0, 0.0, 0.0, 10.0, Kind.AV), (10.0, 0.0, math.pi, 4.0, Kind.AV),
+                    (-40.0, 0.0, 0.0, 10.0, Kind.HV), (60.0, 0.0, 0.0, 10.0, Kind.HV),
+                    (5.0, -30.0, 0.0, 10.0, Kind.HV)], agents=(0, 1))
+    t = view_targets(scene, ObservationConfig(), k=3)
+    assert t.shape == (2, view_target_size(3)) == (2, 2 + 3 * PER_NEIGHBOUR)
+    np.testing.assert_allclose(t[:, :2], [[10 / 20, 9 / 20], [4 / 20, 3 / 20]], atol=1e-6)
+    rows = t[:, 2:].reshape(2, 3, PER_NEIGHBOUR)
+    # Vehicle 0 sees the AV 10 m ahead, coming at it (-4 - 10 m/s), then the human 60 m ahead.
+    np.testing.assert_allclose(rows[0, 0], [10 / 50, 0.0, -14 / 20, 0.0, -1.0, 0.0, 1.0, 1.0, 1.0], atol=1e-6)
+    np.testing.assert_allclose(rows[0, 1, [0, 6, 8]], [60 / 50, 0.0, 1.0], atol=1e-6)
+    np.testing.assert_array_equal(rows[0, 2], 0.0)
+    # Vehicle 1 faces -x: vehicle 0 is 10 m ahead of it, the human at -40 is 50 m ahead, the
+    # one at +60 is 50 m behind (outside its 32 m), and the one at y = -30 lies 30 m to its
+    # right (outside).
+    np.testing.assert_allclose(rows[1, :2, 0], [10 / 50, 50 / 50], atol=1e-6)
+    np.testing.assert_array_equal(rows[1, :, 8], [1.0, 1.0, 0.0])
+
+
+def test_view_targets_rows_agree_with_the_state_vector() -> None:
+    scene = _scene([(100.0, 50.0, math.pi / 2, 10.0, Kind.AV), (96.0, 70.0, 0.0, 5.0, Kind.HV)])
+    t = view_targets(scene, ObservationConfig(), k=2)
+    f = state_features(scene, 0, duration=15.0, k=2, radius=80.0, route=False)
+    np.testing.assert_allclose(t[0, :2], f[:2])
+    np.testing.assert_allclose(t[0, 2:], f[7:], atol=1e-7)

@@ -1,0 +1,100 @@
+"""An auxiliary loss that teaches the map reader to see the vehicles (``dqn.aux_scale``).
+
+The Q-loss alone teaches the attention reader little of where the other vehicles are: a
+reader fed the same map learns to drive far better when it is also asked to say, from
+the map, what the map shows (docs/learning.md, "The attention reader told its place, or
+taught to see the vehicles"). The targets are exact values read from the Scene each
+observation was rendered from (:func:`latentdrive.observe.state.view_targets`): the AV's
+speed and lane speed and its ``aux_neighbours`` nearest vehicles inside its map's view,
+each as offsets, velocity differences and heading in the AV's frame, kind and crashed flag.
+
+After each Q update, one Adam step of its own (at ``aux_scale`` × ``dqn.lr``; Adam's steps
+do not scale with the loss, so the scale goes into the rate) moves the reader and a small
+head by the squared error of that head's prediction, on the same sampled observations.
+The Q-learner's update and its optimizer's moments stay those of :func:`~latentdrive.rl.dqn.update`.
+The head is used in training only: the policy reads the map and nothing else.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from numpy.typing import NDArray
+from torch import Tensor, nn
+
+from latentdrive.config import ObservationConfig
+from latentdrive.models.vfan import QNetwork
+from latentdrive.observe.state import view_target_size, view_targets
+from latentdrive.rl.dqn import DQNConfig
+from latentdrive.rl.replay import LatentStore
+from latentdrive.runtime import autocast
+
+__all__ = ["AuxLearning", "aux_head", "aux_step", "scene_targets"]
+
+
+def aux_head(features: int, hidden: int, k: int) -> nn.Sequential:
+    """The head that predicts the targets of ``k`` neighbours from ``features`` values of
+    what the Q head reads."""
+    return nn.Sequential(nn.Linear(features, hidden), nn.ReLU(), nn.Linear(hidden, view_target_size(k)))
+
+
+def scene_targets(scenes: NDArray[np.object_], obs: ObservationConfig, k: int) -> NDArray[np.float32]:
+    """:func:`~latentdrive.observe.state.view_targets` of every environment's Scene
+    ``(num_envs,)``: ``(num_envs, n_av, view_target_size(k))`` float32."""
+    return np.stack([view_targets(s, obs, k) for s in scenes])
+
+
+def aux_step(summary: Callable[[Tensor], Tensor], head: nn.Module, optimizer: torch.optim.Optimizer, obs: Tensor, targets: Tensor,
+             dtype: torch.dtype = torch.float32) -> float:
+    """One step of the auxiliary loss: the mean squared error of ``head(summary(obs))``
+    ``(B, n)`` against ``targets`` ``(B, n)``; the forward pass in ``dtype`` (bf16 autocast
+    or fp32), the loss in fp32. Returns the loss."""
+    with autocast(dtype, obs.device):
+        pred = head(summary(obs))
+    loss = F.mse_loss(pred.float(), targets)
+    optimizer.zero_grad(set_to_none=True)
+    loss.backward()
+    optimizer.step()
+    return float(loss.detach())
+
+
+class AuxLearning:
+    """A training run's auxiliary loss: its head, its optimizer, and the targets of every
+    observation the replay's store holds, kept in a store of the same capacity that is
+    added to whenever that one is, so that an observation's id names its targets too.
+
+    Args:
+        net: the Q-network (reader 'attention'); its trainable parameters and the head's
+            are what the auxiliary optimizer moves.
+        cfg: ``aux_scale``, ``aux_neighbours``, ``lr``, ``adam_eps``.
+        obs: the VelocityMap's settings (its view box).
+        capacity: the observation store's capacity.
+    """
+
+    def __init__(self, net: QNetwork, cfg: DQNConfig, obs: ObservationConfig, capacity: int,
+                 device: torch.device) -> None:
+        self.k, self.obs = cfg.aux_neighbours, obs
+        self.head = aux_head(net.summary_size, net.cfg.hidden, self.k).to(device)
+        self.optimizer = torch.optim.Adam([*net.trainable_parameters(), *self.head.parameters()],
+                                          lr=cfg.aux_scale * cfg.lr, eps=cfg.adam_eps)
+        self.store = LatentStore(capacity, (view_target_size(self.k),))
+        self.losses: list[float] = []
+
+    def targets(self, scenes: NDArray[np.object_]) -> NDArray[np.float32]:
+        """:func:`scene_targets` of ``scenes`` ``(num_envs,)`` → ``(num_envs, n_av, n)``."""
+        return scene_targets(scenes, self.obs, self.k)
+
+    def add(self, targets: NDArray[np.float32], ids: NDArray[np.int64]) -> None:
+        """Store ``targets`` ``(k, n)`` of the observations the observation store just gave
+        ``ids`` ``(k,)``."""
+        mine = self.store.add(targets, ids)
+        if not np.array_equal(mine, ids):
+            raise RuntimeError("auxiliary targets out of step with the observation store")
+
+    def step(self, net: QNetwork, obs: Tensor, ids: NDArray[np.int64], dtype: torch.dtype) -> None:
+        """One :func:`aux_step` on sampled observations ``obs`` whose ids are ``ids``."""
+        targets = torch.from_numpy(self.store.get(ids)).to(obs.device)
+        self.losses.append(aux_step(net.summary, self.head, self.optimizer, obs, targets, dtype))

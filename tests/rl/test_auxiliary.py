@@ -1,0 +1,85 @@
+"""The auxiliary loss (dqn.aux_scale): what it stores, what it moves, and when it is refused."""
+
+import numpy as np
+import pytest
+import torch
+
+from latentdrive.config import ConfigError
+from latentdrive.models.vfan import QNetwork, VFANConfig
+from latentdrive.rl.auxiliary import aux_head, aux_step, scene_targets
+from latentdrive.rl.policy import build_network, load_policy_network
+from latentdrive.rl.train import Learner, train_policy
+from latentdrive.rollout import rollout
+from latentdrive.vec import make_vec
+
+AUX = {"aux_scale": 1.0, "aux_neighbours": 4, "n_step": 1}
+
+
+def test_every_stored_observation_keeps_the_targets_of_the_scene_it_shows(tiny):
+    cfg = tiny(mode="raw", dqn=AUX, vfan={"reader": "attention", "hidden": 32})
+    net = build_network(cfg, None)
+    vec = make_vec(cfg.scenario_specs(), cfg.envs, observation=cfg.observation.model_dump())
+    learner = Learner(cfg, net, torch.device("cpu"), cfg.envs * vec.n_av)
+    assert learner.aux is not None
+    rng = np.random.default_rng(0)
+    cur, ends = None, 0
+    try:
+        for step, rec in enumerate(rollout(vec, lambda inp: rng.integers(0, 5, inp.active.shape), seed=5)):
+            if cur is None:
+                assert rec.acted_scenes is not None
+                cur = learner.start_segment(learner.cache(rec.obs), rec.acted_scenes)
+                want = scene_targets(rec.acted_scenes, cfg.observation, 4)
+                np.testing.assert_array_equal(learner.aux.store.get(cur.ravel()), want.reshape(cur.size, -1))
+            ei, ai = np.nonzero(rec.agents.acting)
+            cur = learner.record(rec, cur, learner.cache)
+            # One-step transitions reach the replay at once: the step's are its newest.
+            slots = (learner.replay.added - len(ei) + np.arange(len(ei))) % learner.replay.capacity
+            # Each transition leads to the Scene next_obs shows: the ended episode's last one.
+            np.testing.assert_array_equal(learner.aux.store.get(learner.replay.next_id[slots]),
+                                          scene_targets(rec.scenes, cfg.observation, 4)[ei, ai])
+            assert rec.scenes_after is not None
+            for e in np.flatnonzero(rec.ended):
+                # The new episode's first observations show its first Scene.
+                np.testing.assert_array_equal(learner.aux.store.get(cur[e]),
+                                              scene_targets(rec.scenes_after[e:e + 1], cfg.observation, 4)[0])
+                assert not np.array_equal(scene_targets(rec.scenes[e:e + 1], cfg.observation, 4),
+                                          scene_targets(rec.scenes_after[e:e + 1], cfg.observation, 4))
+            ends += int(rec.ended.sum())
+            if step == 60:
+                break
+    finally:
+        vec.close()
+    assert ends > 0  # both kinds of first observation were checked
+    assert learner.aux.store.added == learner.replay.store.added
+
+
+def test_the_auxiliary_step_fits_the_targets_and_leaves_the_q_head_alone():
+    torch.manual_seed(0)
+    net = QNetwork(VFANConfig(reader="attention", hidden=32, attention_width=16), "raw", (4, 2, 16, 32),
+                   geometry=(1.5, 8.0))
+    head = aux_head(net.summary_size, 32, 2)
+    opt = torch.optim.Adam([*net.parameters(), *head.parameters()], lr=3e-3)
+    obs = torch.rand(32, 4, 2, 16, 32)
+    targets = torch.rand(32, 2 + 2 * 9)
+    q_head = [p.detach().clone() for p in net.body.get_submodule("head").parameters()]
+    stem = [p.detach().clone() for p in net.body.get_submodule("stem").parameters()]
+    first = aux_step(net.summary, head, opt, obs, targets)
+    for _ in range(150):
+        last = aux_step(net.summary, head, opt, obs, targets)
+    assert last < 0.3 * first
+    assert all(torch.equal(a, b) for a, b in zip(q_head, net.body.get_submodule("head").parameters(), strict=True))
+    assert not all(torch.equal(a, b) for a, b in zip(stem, net.body.get_submodule("stem").parameters(), strict=True))
+
+
+@pytest.mark.parametrize("changes", [{"vfan": {}}, {"vfan": {"reader": "attention"}, "learner": "dagger"}])
+def test_the_auxiliary_loss_needs_the_attention_reader_and_q_learning(tiny, changes):
+    with pytest.raises((ConfigError, ValueError), match=r"dqn\.aux_scale"):
+        tiny(mode="raw", dqn={"aux_scale": 1.0}, **changes)
+
+
+def test_a_run_with_the_auxiliary_loss_evaluates_from_its_folder(tmp_path, tiny):
+    cfg = tiny(mode="raw", steps=150, dqn=AUX, vfan={"reader": "attention", "hidden": 32})
+    result = train_policy(cfg, tmp_path / "run", progress=False, say=lambda _line: None)
+    assert result["updates"] > 0
+    net, _ = load_policy_network(tmp_path / "run")
+    assert not any(name.startswith("aux") for name in net.state_dict())
