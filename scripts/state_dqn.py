@@ -81,6 +81,7 @@ from latentdrive.fileio import atomic_write_text
 from latentdrive.models.attention import MapAttentionBody
 from latentdrive.observe.state import PER_NEIGHBOUR, state_size
 from latentdrive.outcome import EpisodeOutcome, outcomes_from_json, outcomes_to_json
+from latentdrive.rl.auxiliary import aux_step
 from latentdrive.rl.dqn import DQNConfig, epsilon, target_step, update, updates_owed
 from latentdrive.rl.nstep import NStepWindow
 from latentdrive.rl.policy import greedy_policy, load_policy_network
@@ -215,17 +216,12 @@ class MapPoseNet(nn.Module):
         return self.body.head(self.summary(x))
 
 
-def aux_step(net: MapPoseNet, opt: torch.optim.Optimizer, obs: torch.Tensor, dtype: torch.dtype) -> float:
-    """One step of ``--aux``: the squared error of ``net.aux``'s prediction of the
+def map_aux_step(net: MapPoseNet, opt: torch.optim.Optimizer, obs: torch.Tensor, dtype: torch.dtype) -> float:
+    """One step of ``--aux`` (:func:`latentdrive.rl.auxiliary.aux_step`, the loss of
+    ``train-policy``'s ``dqn.aux_scale``): ``net.aux``'s prediction of the
     :func:`aux_targets` that ``obs``'s rows end with; the loss."""
     assert net.aux is not None
-    with autocast(dtype, CPU):
-        pred = net.aux(net.summary(obs))
-    loss = torch.nn.functional.mse_loss(pred.float(), obs[:, net.n_map + N_POSE:])
-    opt.zero_grad()
-    loss.backward()
-    opt.step()
-    return float(loss.detach())
+    return aux_step(net.summary, net.aux, opt, obs, obs[:, net.n_map + N_POSE:], dtype)
 
 
 class StatePolicy:
@@ -370,7 +366,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
             loss = stats.loss
             if aux_opt is not None:
                 assert isinstance(net, MapPoseNet)
-                aux_loss = aux_step(net, aux_opt, batch.obs, dtype)
+                aux_loss = map_aux_step(net, aux_opt, batch.obs, dtype)
             updates += 1
             target_step(target, net, cfg, updates)
         bar.set_postfix(loss=f"{loss:.3f}", aux=f"{aux_loss:.3f}", eps=f"{epsilon(cfg, transitions, args.steps):.2f}", refresh=False)

@@ -275,9 +275,9 @@ def test_an_auxiliary_step_teaches_the_reader_the_targets():
     n_in = net.n_map + 5
     obs = torch.cat([torch.rand(16, n_in), torch.rand(16, MOD["N_AUX"])], dim=1)
     opt = torch.optim.Adam(net.parameters(), lr=1e-3)
-    first = MOD["aux_step"](net, opt, obs, torch.float32)
+    first = MOD["map_aux_step"](net, opt, obs, torch.float32)
     for _ in range(150):
-        last = MOD["aux_step"](net, opt, obs, torch.float32)
+        last = MOD["map_aux_step"](net, opt, obs, torch.float32)
     assert last < 0.2 * first
     assert net(obs).shape == (16, 5) and torch.equal(net(obs), net(obs[:, :n_in]))  # the targets are not read
 
