@@ -98,3 +98,14 @@ class AuxLearning:
         """One :func:`aux_step` on sampled observations ``obs`` whose ids are ``ids``."""
         targets = torch.from_numpy(self.store.get(ids)).to(obs.device)
         self.losses.append(aux_step(net.summary, self.head, self.optimizer, obs, targets, dtype))
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        """The stored targets, for the replay's file (keys ``aux/...``)."""
+        return {f"aux/{k}": v for k, v in self.store.state().items()}
+
+    def load_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+        """Restore :meth:`arrays` from the replay's file ``arrays``, checked against the
+        observation store's count there; raises ``KeyError``/``ValueError`` when they do not fit."""
+        self.store.load_state({k.removeprefix("aux/"): v for k, v in arrays.items() if k.startswith("aux/")})
+        if self.store.added != int(arrays["store/added"][0]):
+            raise ValueError("auxiliary targets out of step with the stored observations")

@@ -275,9 +275,7 @@ class Learner:
     # ---- checkpoints ---------------------------------------------------------------
 
     def save(self, run_dir: Path, segment: int) -> None:
-        state = self.replay.state()
-        if self.aux is not None:
-            state.update({f"aux/{k}": v for k, v in self.aux.store.state().items()})
+        state = {**self.replay.state(), **({} if self.aux is None else self.aux.arrays())}
         arrays = {k: np.ascontiguousarray(v) for k, v in state.items()}
         # The replay first, under a new name; then the checkpoint that names it (atomic);
         # only then are older replays removed. A kill anywhere leaves a consistent pair.
@@ -352,9 +350,7 @@ class Learner:
         try:
             arrays = {k: t.numpy() for k, t in tensors.items()}
             if self.aux is not None:
-                self.aux.store.load_state({k.removeprefix("aux/"): v for k, v in arrays.items() if k.startswith("aux/")})
-                if self.aux.store.added != int(arrays["store/added"][0]):
-                    raise ValueError("auxiliary targets out of step with the stored observations")
+                self.aux.load_arrays(arrays)
             self.replay.load_state(arrays)
         except (KeyError, TypeError, ValueError) as exc:
             raise CheckpointError(f"{path}: unusable replay ({first_line(exc)})") from None
