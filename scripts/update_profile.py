@@ -23,8 +23,9 @@ import torch
 
 from latentdrive.rl.bench import bench_config
 from latentdrive.rl.dqn import update
+from latentdrive.rl.learner import Learner
 from latentdrive.rl.policy import build_network, encoder_config
-from latentdrive.rl.train import Learner, learner_steps
+from latentdrive.rl.train import learner_steps
 from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
 from latentdrive.vec import make_vec
 

@@ -37,8 +37,9 @@ from latentdrive.experiments.policy import EvaluationSet, policy_makers
 from latentdrive.fileio import atomic_write_text
 from latentdrive.outcome import outcomes_to_json
 from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.learner import REPLAY_PATTERN
 from latentdrive.rl.policy import CHECKPOINT
-from latentdrive.rl.train import REPLAY_PATTERN, train_policy
+from latentdrive.rl.train import train_policy
 
 __all__ = ["OUTCOMES", "PROBES", "RUN", "STEP_KINDS"]
 

@@ -43,8 +43,9 @@ from torch.utils.flop_counter import FlopCounterMode
 from latentdrive.config import merge_overrides, validate
 from latentdrive.models.vfan import LATENT_MODES
 from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.learner import Learner
 from latentdrive.rl.policy import build_network, encoder_config
-from latentdrive.rl.train import Learner, learner_steps
+from latentdrive.rl.train import learner_steps
 from latentdrive.runtime import resolve_device, resolve_precision, torch_settings
 from latentdrive.vec import make_vec
 

@@ -65,9 +65,9 @@ def test_an_augmented_run_is_deterministic_and_differs_from_an_unaugmented_one(t
 
 
 def test_the_update_learns_from_shifted_observations_and_next_observations(tmp_path, tiny, monkeypatch):
-    import latentdrive.rl.train as train_module
+    import latentdrive.rl.learner as learner_module
 
-    real_update, seen = train_module.update, []
+    real_update, seen = learner_module.update, []
 
     def marked_shift(maps, pad, rng):
         assert pad == 1
@@ -77,8 +77,8 @@ def test_the_update_learns_from_shifted_observations_and_next_observations(tmp_p
         seen.append((float(batch.obs.min()), float(batch.next_obs.min())))
         return real_update(online, target, optimizer, batch, cfg, dtype)
 
-    monkeypatch.setattr(train_module, "random_shift", marked_shift)
-    monkeypatch.setattr(train_module, "update", spying_update)
+    monkeypatch.setattr(learner_module, "random_shift", marked_shift)
+    monkeypatch.setattr(learner_module, "update", spying_update)
     train_policy(tiny(mode="raw", steps=120, dqn={"augment_shift": 1, "learning_starts": 40}), tmp_path / "run",
                  progress=False, say=lambda _line: None)
     assert seen and all(obs >= 1000.0 and nxt >= 1000.0 for obs, nxt in seen)

@@ -7,8 +7,9 @@ import torch
 from latentdrive.config import ConfigError
 from latentdrive.models.vfan import QNetwork, VFANConfig
 from latentdrive.rl.auxiliary import aux_head, aux_step, scene_targets
+from latentdrive.rl.learner import Learner
 from latentdrive.rl.policy import build_network, load_policy_network
-from latentdrive.rl.train import Learner, train_policy
+from latentdrive.rl.train import train_policy
 from latentdrive.rollout import rollout
 from latentdrive.vec import make_vec
 

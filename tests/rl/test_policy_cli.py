@@ -312,7 +312,7 @@ def test_a_moved_keep_best_latent_run_resumes_before_its_first_evaluation(tmp_pa
 
     import torch
 
-    from latentdrive.rl.train import Learner
+    from latentdrive.rl.learner import Learner
 
     torch.manual_seed(0)
     bnn = _bnn_run(tmp_path / "bnn", (2, 16, 32))

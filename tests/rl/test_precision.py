@@ -70,8 +70,8 @@ def test_the_frozen_encoder_under_bf16_stays_close_to_fp32():
 
 def test_auto_precision_is_what_the_runtime_resolves():
     from latentdrive.rl.config import PolicyTrainConfig
+    from latentdrive.rl.learner import Learner
     from latentdrive.rl.policy import build_network
-    from latentdrive.rl.train import Learner
 
     cfg = PolicyTrainConfig(mode="raw", observation={"height": 16, "width": 32, "frames": 2},
                             vfan={"hidden": 16, "channels": [4, 4, 4]})

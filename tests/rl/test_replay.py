@@ -8,9 +8,9 @@ import latentdrive
 from latentdrive.data.shards import QUANT_MAX_ERROR
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
 from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.learner import Learner, make_store
 from latentdrive.rl.policy import FeatureCache, build_network
 from latentdrive.rl.replay import FrameStore, LatentStore, Replay
-from latentdrive.rl.train import Learner, make_store
 from latentdrive.rollout import rollout
 
 OBS = {"height": 16, "width": 32, "frames": 3}

@@ -156,7 +156,7 @@ def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_p
     # The default buffer holds 100k transitions: saved whole, a raw replay takes 400 MB
     # at this tiny grid (1.6 GB at the default one) whatever the run's length.
     from latentdrive.bnn.checkpoint import read_checkpoint
-    from latentdrive.rl.train import Learner
+    from latentdrive.rl.learner import Learner
 
     cfg = tiny(mode="raw", steps=200, dqn={"buffer_size": 100_000, **options}, vfan=vfan)
     train_policy(cfg, tmp_path / "whole", **_quiet())
@@ -248,8 +248,8 @@ def test_a_run_whose_config_predates_the_learner_options_still_loads(tmp_path, t
 def test_the_optimizer_takes_the_configured_adam_eps(tiny):
     import torch
 
+    from latentdrive.rl.learner import Learner
     from latentdrive.rl.policy import build_network
-    from latentdrive.rl.train import Learner
 
     for eps in (1e-8, 1.5e-4):
         cfg = tiny(mode="raw", dqn={"adam_eps": eps})
@@ -295,7 +295,7 @@ def test_keep_best_makes_the_least_failing_evaluated_weights_the_runs_policy(tmp
 
 def test_a_resumed_run_keeps_the_best_weights_chosen_before_it_was_stopped(tmp_path, tiny, monkeypatch):
     import latentdrive.rl.train as train_module
-    from latentdrive.rl.train import Learner
+    from latentdrive.rl.learner import Learner
 
     rates = [0.25, 0.5, 0.75, 0.5]  # the best comes before the interruption, and stays best
     cfg = tiny(mode="raw", steps=400, eval_every=1, keep="best")
@@ -327,7 +327,7 @@ def test_a_resumed_run_keeps_the_best_weights_chosen_before_it_was_stopped(tmp_p
 
 def test_a_run_that_keeps_its_best_weights_refuses_to_load_before_any_evaluation(tmp_path, tiny, monkeypatch):
     from latentdrive.bnn.checkpoint import CheckpointError
-    from latentdrive.rl.train import Learner
+    from latentdrive.rl.learner import Learner
 
     save = Learner.save
 
