@@ -103,9 +103,10 @@ class AuxLearning:
         """The stored targets, for the replay's file (keys ``aux/...``)."""
         return {f"aux/{k}": v for k, v in self.store.state().items()}
 
-    def load_arrays(self, arrays: dict[str, np.ndarray]) -> None:
+    def load_arrays(self, arrays: dict[str, np.ndarray], observations_added: int) -> None:
         """Restore :meth:`arrays` from the replay's file ``arrays``, checked against the
-        observation store's count there; raises ``KeyError``/``ValueError`` when they do not fit."""
+        count of observations the restored store holds; raises ``KeyError``/``ValueError``
+        when they do not fit."""
         self.store.load_state({k.removeprefix("aux/"): v for k, v in arrays.items() if k.startswith("aux/")})
-        if self.store.added != int(arrays["store/added"][0]):
+        if self.store.added != observations_added:
             raise ValueError("auxiliary targets out of step with the stored observations")

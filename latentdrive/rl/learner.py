@@ -300,9 +300,9 @@ class Learner:
             raise CheckpointError(f"{path}: corrupt replay (checksum mismatch with {CHECKPOINT})")
         try:
             arrays = {k: t.numpy() for k, t in tensors.items()}
-            if self.aux is not None:
-                self.aux.load_arrays(arrays)
             self.replay.load_state(arrays)
+            if self.aux is not None:
+                self.aux.load_arrays(arrays, self.replay.store.added)
         except (KeyError, TypeError, ValueError) as exc:
             raise CheckpointError(f"{path}: unusable replay ({first_line(exc)})") from None
         if self.replay.added != replay_added:
