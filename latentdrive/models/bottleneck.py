@@ -21,7 +21,9 @@ Decoder, the mirror image::
     ConvTranspose3d(c0→2, k=(1,ks+1,ks+1), s=(1,2,2)), crop → logits → sigmoid
 
 The bracketed parts are :class:`BottleneckConfig` options (``head_hidden``,
-``residual_blocks``, ``latent_norm``); with all three off the network is the paper's
+``residual_blocks``, ``latent_norm``); ``decoder=broadcast`` replaces the decoder's linear
+layers by an MLP shared by the coarse cells, fed the code and each cell's coordinates. With
+the first three off and the linear decoder the network is the paper's
 structure, a single linear layer on each side of the code. Three things in that plain
 structure lose the vehicles (docs/bnn-notes.md): one ReLU layer between the code and the
 map leaves the decoder too little capacity to place a handful of cars, and a sigmoid code
@@ -63,6 +65,7 @@ __all__ = [
     "BottleneckConfig",
     "BottleneckNetwork",
     "PairAutoencoder",
+    "SpatialBroadcast",
     "channel_pairs",
 ]
 
@@ -127,6 +130,20 @@ class BottleneckConfig(Config):
         0, ge=0, le=8,
         description="Residual 3D conv blocks (two convolutions each) at the last, coarsest "
         "stage of the encoder and, mirrored, of the decoder. 0 is the paper's structure.",
+    )
+    decoder: Literal["linear", "broadcast"] = Field(
+        "linear",
+        description="How the decoder turns the code into the coarsest stage's feature map. "
+        "'linear': one linear layer (through head_hidden when set) to every cell's features "
+        "at once, the paper's structure. 'broadcast': a spatial broadcast decoder (Watters et "
+        "al., 2019): the code goes to every coarse cell with that cell's (frame, row, column) "
+        "coordinates, and one small MLP, shared by all cells, computes each cell's features "
+        "(broadcast_hidden wide). A car at one place and a car at another are then drawn by "
+        "the same weights.",
+    )
+    broadcast_hidden: int = Field(
+        128, ge=8, le=1024,
+        description="Width of the broadcast decoder's two hidden layers (decoder=broadcast only).",
     )
     initial_output: float = Field(
         0.05, gt=0.0, lt=1.0,
@@ -196,6 +213,29 @@ class _Residual(nn.Module):
         return x + self.conv2(F.relu(self.conv1(F.relu(x))))
 
 
+class SpatialBroadcast(nn.Module):
+    """Code ``(B, d)`` → coarse features ``(B, c·T·h·w)`` in ``(c, T, h, w)`` order: a shared
+    MLP of each coarse cell's code and coordinates (each axis scaled to [-1, 1]).
+
+    The first layer is linear in code and coordinates, so its code part is computed once per
+    sample and its coordinate part once per cell, rather than once per sample and cell."""
+
+    def __init__(self, latent_dim: int, code_shape: tuple[int, int, int, int], hidden: int) -> None:
+        super().__init__()
+        c, t, h, w = code_shape
+        axes = [torch.linspace(-1.0, 1.0, n) if n > 1 else torch.zeros(1) for n in (t, h, w)]
+        coords = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1).reshape(t * h * w, 3)
+        self.coords: Tensor
+        self.register_buffer("coords", coords, persistent=False)
+        self.from_code = nn.Linear(latent_dim, hidden)
+        self.from_place = nn.Linear(3, hidden, bias=False)
+        self.cell = nn.Sequential(nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(), nn.Linear(hidden, c))
+
+    def forward(self, z: Tensor) -> Tensor:
+        a = self.from_code(z)[:, None, :] + self.from_place(self.coords.to(z.dtype))[None]
+        return self.cell(a).transpose(1, 2).reshape(z.shape[0], -1)
+
+
 def _head(sizes: list[int]) -> nn.Sequential:
     """Linear layers through ``sizes`` with ReLUs between them (none after the last)."""
     layers: list[nn.Module] = []
@@ -261,7 +301,10 @@ class PairAutoencoder(nn.Module):
         self.to_latent = _head([flat, *hidden, cfg.latent_dim])
         self.latent_norm: nn.Module = nn.LayerNorm(cfg.latent_dim) if cfg.latent_norm else nn.Identity()
         self.latent_act = _activation(cfg.latent_activation)
-        self.from_latent = _head([cfg.latent_dim, *hidden, flat])
+        self.from_latent: nn.Module = (
+            SpatialBroadcast(cfg.latent_dim, self.code_shape, cfg.broadcast_hidden) if cfg.decoder == "broadcast"
+            else _head([cfg.latent_dim, *hidden, flat])
+        )
 
         dec: list[nn.Module] = []
         for i in range(len(cfg.channels) - 1, -1, -1):

@@ -11,6 +11,7 @@ from latentdrive.models.bottleneck import (
     BottleneckConfig,
     BottleneckNetwork,
     PairAutoencoder,
+    SpatialBroadcast,
     channel_pairs,
 )
 
@@ -80,12 +81,54 @@ def test_weights_are_shared_between_pairs() -> None:
         torch.testing.assert_close(z[:, k], net.autoencoder.encode(pairs[:, k]))
 
 
-def test_gradients_reach_every_parameter() -> None:
-    net = _net(latent_dim=16)
+@pytest.mark.parametrize("decoder", ["linear", "broadcast"])
+def test_gradients_reach_every_parameter(decoder: str) -> None:
+    net = _net(latent_dim=16, decoder=decoder)
     recon, _ = net(torch.rand(2, 4, 2, 16, 32))
     recon.sum().backward()
     for name, p in net.named_parameters():
         assert p.grad is not None and torch.isfinite(p.grad).all(), name
+
+
+@pytest.mark.parametrize("shape", [(1, 8, 8), (3, 9, 13), (4, 32, 64)])
+def test_broadcast_decoder_matches_any_input_shape(shape: tuple[int, int, int]) -> None:
+    net = BottleneckNetwork(BottleneckConfig(input_shape=shape, latent_dim=16, channels=(4, 8), decoder="broadcast",
+                                             broadcast_hidden=16))
+    recon, z = net(torch.rand(2, 4, *shape))
+    assert recon.shape == (2, 3, 2, *shape) and z.shape == (2, 3, 16)
+    assert recon.min() >= 0.0 and recon.max() <= 1.0
+
+
+def test_broadcast_decoder_coordinates_are_literal() -> None:
+    # The coarsest stage of a (2, 16, 32) input through three stride-2 stages is (2, 2, 4):
+    # frames at -1 and 1, rows at -1 and 1, columns at -1, -1/3, 1/3, 1, in (T, h, w) order.
+    ae = _net(decoder="broadcast").autoencoder
+    assert ae.code_shape[1:] == (2, 2, 4) and isinstance(ae.from_latent, SpatialBroadcast)
+    coords = ae.from_latent.coords
+    assert coords.shape == (16, 3)
+    torch.testing.assert_close(coords[0], torch.tensor([-1.0, -1.0, -1.0]))
+    torch.testing.assert_close(coords[1], torch.tensor([-1.0, -1.0, -1.0 / 3.0]))
+    torch.testing.assert_close(coords[4], torch.tensor([-1.0, 1.0, -1.0]))
+    torch.testing.assert_close(coords[15], torch.tensor([1.0, 1.0, 1.0]))
+    # A single frame's axis sits at 0 rather than dividing by zero.
+    one = BottleneckNetwork(BottleneckConfig(input_shape=(1, 8, 8), latent_dim=8, channels=(4,), decoder="broadcast"))
+    assert isinstance(one.autoencoder.from_latent, SpatialBroadcast)
+    assert torch.all(one.autoencoder.from_latent.coords[:, 0] == 0.0)
+
+
+def test_broadcast_decoder_draws_every_cell_with_the_same_weights() -> None:
+    # Without the coordinates' contribution, every coarse cell computes the same features
+    # from the code: the cells differ only by where they are.
+    ae = _net(latent_dim=16, decoder="broadcast").autoencoder
+    head = ae.from_latent
+    assert isinstance(head, SpatialBroadcast)
+    with torch.no_grad():
+        head.from_place.weight.zero_()
+        feats = head(torch.rand(3, 16)).view(3, *ae.code_shape)
+    c, t, h, w = ae.code_shape
+    cells = feats.reshape(3, c, t * h * w)
+    assert torch.equal(cells, cells[:, :, :1].expand_as(cells))
+    assert not torch.equal(cells[0], cells[1])
 
 
 def test_initial_output_is_near_the_configured_value() -> None:
@@ -115,6 +158,8 @@ def test_wrong_observation_shape_is_rejected() -> None:
         ({"temporal_kernel": 2}, "temporal_kernel"),
         ({"latent_activation": "relu"}, "latent_activation"),
         ({"latent_size": 64}, "latent_size"),
+        ({"decoder": "conv"}, "decoder"),
+        ({"broadcast_hidden": 4}, "broadcast_hidden"),
     ],
 )
 def test_config_errors_name_the_field(data: dict[str, object], field: str) -> None:
