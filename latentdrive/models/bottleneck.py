@@ -139,7 +139,8 @@ class BottleneckConfig(Config):
         "al., 2019): the code goes to every coarse cell with that cell's (frame, row, column) "
         "coordinates, and one small MLP, shared by all cells, computes each cell's features "
         "(broadcast_hidden wide). A car at one place and a car at another are then drawn by "
-        "the same weights.",
+        "the same weights. Measured worse than 'linear' on the small study's d = 64 "
+        "(docs/bnn-notes.md, 'A spatial broadcast decoder').",
     )
     broadcast_hidden: int = Field(
         128, ge=8, le=1024,
