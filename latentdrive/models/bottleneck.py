@@ -123,8 +123,8 @@ class BottleneckConfig(Config):
     head_hidden: int = Field(
         256, ge=0, le=8192,
         description="Width of a hidden ReLU layer between the convolutional features and the "
-        "code, on both sides (flat → hidden → d, d → hidden → flat). 0: one linear layer each "
-        "side, the paper's structure.",
+        "code, on both sides (flat → hidden → d, d → hidden → flat; the decoder's side only with "
+        "decoder=linear). 0: one linear layer each side, the paper's structure.",
     )
     residual_blocks: int = Field(
         0, ge=0, le=8,
