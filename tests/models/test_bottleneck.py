@@ -131,6 +131,21 @@ def test_broadcast_decoder_draws_every_cell_with_the_same_weights() -> None:
     assert not torch.equal(cells[0], cells[1])
 
 
+def test_broadcast_decoder_puts_each_cells_features_at_that_cell() -> None:
+    # Cell (t, i, j) of the coarse map holds the shared MLP of the code and coords[t·h·w + i·w + j].
+    ae = _net(latent_dim=16, decoder="broadcast").autoencoder
+    head = ae.from_latent
+    assert isinstance(head, SpatialBroadcast)
+    z = torch.rand(2, 16)
+    with torch.no_grad():
+        feats = head(z).view(2, *ae.code_shape)
+        h, w = ae.code_shape[2:]
+        for tt, i, j in [(0, 0, 0), (0, 1, 2), (1, 0, 3), (1, 1, 1)]:
+            k = tt * h * w + i * w + j
+            expected = head.cell(head.from_code(z) + head.from_place(head.coords[k]))
+            torch.testing.assert_close(feats[:, :, tt, i, j], expected)
+
+
 def test_initial_output_is_near_the_configured_value() -> None:
     net = _net(latent_dim=16, initial_output=0.05)
     with torch.no_grad():
