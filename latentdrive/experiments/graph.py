@@ -47,6 +47,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("dqn", "explore_rule"): 0.0,
     ("dqn", "aux_scale"): 0.0,
     ("dqn", "aux_neighbours"): 12,
+    ("dqn", "aux_joint"): False,
     ("keep",): "last",
     ("planner", "human_routes"): "known",
     ("vfan", "reader"): "conv",

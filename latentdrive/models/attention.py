@@ -128,7 +128,11 @@ class MapAttentionBody(nn.Module):
 
     def read(self, tokens: Tensor, me: int) -> Tensor:
         """Q-values ``(B, n_actions)`` from ``tokens`` ``(B, N, width)`` (:meth:`summary`)."""
-        z = self.summary(tokens, me)
+        return self.q_values(self.summary(tokens, me))
+
+    def q_values(self, z: Tensor) -> Tensor:
+        """Q-values ``(B, n_actions)`` from what the head reads, ``z`` ``(B, 2·width)``
+        (:meth:`embed`): a loss on ``z`` can then share the forward pass with the Q-loss."""
         if not self.dueling:
             return self.head(z)
         adv = self.advantage(z)

@@ -244,6 +244,13 @@ class QNetwork(nn.Module):
             raise ValueError("only the attention reader (vfan.reader 'attention') exposes a summary")
         return self.body.embed(stored)
 
+    def q_from_summary(self, z: Tensor) -> Tensor:
+        """Q-values ``(B, n_actions)`` from :meth:`summary`'s rows ``z``: ``forward(x)``
+        equals ``q_from_summary(summary(x))`` (reader 'attention' only)."""
+        if not isinstance(self.body, MapAttentionBody):
+            raise ValueError("only the attention reader (vfan.reader 'attention') exposes a summary")
+        return self.body.q_values(z)
+
     @property
     def summary_size(self) -> int:
         """Length of :meth:`summary`'s rows."""

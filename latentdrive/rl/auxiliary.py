@@ -12,6 +12,14 @@ After each Q update, one Adam step of its own (at ``aux_scale`` × ``dqn.lr``; A
 do not scale with the loss, so the scale goes into the rate) moves the reader and a small
 head by the squared error of that head's prediction, on the same sampled observations.
 The Q-learner's update and its optimizer's moments stay those of :func:`~latentdrive.rl.dqn.update`.
+
+With ``aux_joint`` the squared error, times ``aux_scale``, is added to the Q update's loss
+instead: the reader's summary of the sampled maps is computed once and one backward pass
+serves both losses, about 1.05 times a Q update's arithmetic instead of about 1.5 times.
+The reader then moves by the Q-learner's Adam step on the summed gradient, so the scale is
+a weight on the loss, not on the rate, and the two losses share the optimizer's moments;
+the head has an Adam of its own at ``dqn.lr``.
+
 The head is used in training only: the policy reads the map and nothing else.
 """
 
@@ -78,8 +86,11 @@ class AuxLearning:
                  device: torch.device) -> None:
         self.k, self.obs = cfg.aux_neighbours, obs
         self.head = aux_head(net.summary_size, net.cfg.hidden, self.k).to(device)
-        self.optimizer = torch.optim.Adam([*net.trainable_parameters(), *self.head.parameters()],
-                                          lr=cfg.aux_scale * cfg.lr, eps=cfg.adam_eps)
+        self.scale, self.joint = cfg.aux_scale, cfg.aux_joint
+        # Joint: the reader moves with the Q-learner's optimizer; this one moves the head.
+        moved = [*self.head.parameters()] if self.joint else [*net.trainable_parameters(), *self.head.parameters()]
+        self.optimizer = torch.optim.Adam(moved, lr=cfg.lr if self.joint else cfg.aux_scale * cfg.lr,
+                                          eps=cfg.adam_eps)
         self.store = LatentStore(capacity, (view_target_size(self.k),))
         self.losses: list[float] = []
 
@@ -98,6 +109,28 @@ class AuxLearning:
         """One :func:`aux_step` on sampled observations ``obs`` whose ids are ``ids``."""
         targets = torch.from_numpy(self.store.get(ids)).to(obs.device)
         self.losses.append(aux_step(net.summary, self.head, self.optimizer, obs, targets, dtype))
+
+    def joint_term(self, ids: NDArray[np.int64], device: torch.device, dtype: torch.dtype) -> Callable[[Tensor], Tensor]:
+        """The term :func:`~latentdrive.rl.dqn.update` adds to its Q-loss (``aux_joint``)
+        for sampled observations whose ids are ``ids``: ``aux_scale`` × the squared error of
+        the head's prediction from the summary ``z`` ``(B, n)`` (forward in ``dtype``, loss
+        in fp32). Clears the head's gradients now; :meth:`step_head` steps it after the
+        backward pass."""
+        targets = torch.from_numpy(self.store.get(ids)).to(device)
+        self.optimizer.zero_grad(set_to_none=True)
+
+        def term(z: Tensor) -> Tensor:
+            with autocast(dtype, device):
+                pred = self.head(z)
+            loss = F.mse_loss(pred.float(), targets)
+            self.losses.append(float(loss.detach()))
+            return self.scale * loss
+
+        return term
+
+    def step_head(self) -> None:
+        """The head's Adam step after a joint update's backward pass."""
+        self.optimizer.step()
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The stored targets, for the replay's file (keys ``aux/...``)."""

@@ -7,6 +7,7 @@ yields up to ``num_envs · n_av`` transitions.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from fractions import Fraction
 from typing import Any, NamedTuple
 
@@ -16,6 +17,7 @@ from pydantic import Field, model_validator
 from torch import Tensor, nn
 
 from latentdrive.config import Config
+from latentdrive.models.vfan import QNetwork
 from latentdrive.rl.replay import Batch
 from latentdrive.runtime import autocast
 
@@ -52,6 +54,7 @@ class DQNConfig(Config):
     eps_fraction: float = Field(0.3, gt=0.0, le=1.0, description="Share of the transition budget over which ε decays linearly.")
     augment_shift: int = Field(0, ge=0, le=8, description="Random-shift augmentation (DrQ): every sampled map and next map is moved by up to this many cells along each axis (edge cells repeated), independently per sample, before the update. Modes that read the map only (raw, end-to-end); 0, the default, is off.")
     aux_scale: float = Field(0.0, ge=0.0, le=100.0, description="Auxiliary loss that teaches the map reader to see the vehicles (latentdrive.rl.auxiliary): after each Q update, an Adam step of its own at aux_scale × lr trains the reader and a small head to predict, from the map, the AV's speed and lane speed and its aux_neighbours nearest vehicles inside the map's view, read exactly from the Scene. Training only: the policy reads the map alone. vfan.reader 'attention' only; 0, the default, is off.")
+    aux_joint: bool = Field(False, description="How the auxiliary loss (aux_scale > 0) trains the reader. False: after each Q update, an Adam step of its own at aux_scale × lr, with its own forward and backward pass of the sampled maps (about 1.5 times a Q update's arithmetic). True: aux_scale × its squared error is added to the Q update's loss, so one forward and one backward pass of the maps, and the Q-learner's Adam step, serve both (about 1.05 times); the head keeps an Adam of its own at lr.")
     aux_neighbours: int = Field(12, ge=1, le=64, description="Vehicles whose offsets, velocity differences, headings, kinds and crashed flags the auxiliary loss asks for (aux_scale > 0), nearest first.")
     explore_rule: float = Field(0.0, ge=0.0, le=1.0, description="Share of the exploratory actions (those ε-greedy plays instead of the greedy one) that the rule driver of evaluate --policy rule chooses instead of a uniform random action. Exploration guided toward the states a car follower reaches; one-step Q-learning, off-policy, still learns the greedy policy's values, while n-step returns (no off-policy correction) also follow the guide's later actions. 0, the default, is plain ε-greedy.")
 
@@ -72,6 +75,8 @@ class DQNConfig(Config):
 
     @model_validator(mode="after")
     def _check(self) -> DQNConfig:
+        if self.aux_joint and self.aux_scale == 0:
+            raise ValueError("aux_joint shapes the auxiliary loss: it needs aux_scale > 0")
         if self.eps_end > self.eps_start:
             raise ValueError(f"eps_end={self.eps_end} exceeds eps_start={self.eps_start}")
         ratio = Fraction(self.updates_per_transition).limit_denominator(MAX_RATIO_DENOMINATOR)
@@ -139,27 +144,43 @@ class UpdateStats(NamedTuple):
 
 
 def update(online: nn.Module, target: nn.Module, optimizer: torch.optim.Optimizer, batch: Batch,
-           cfg: DQNConfig, dtype: torch.dtype = torch.float32) -> UpdateStats:
+           cfg: DQNConfig, dtype: torch.dtype = torch.float32,
+           joint: Callable[[Tensor], Tensor] | None = None) -> UpdateStats:
     """One gradient step on ``batch``.
 
     Forward passes run in ``dtype`` (bf16 autocast, or fp32); targets, TD errors and the
     loss are computed in fp32. With importance weights (``batch.weight``) each sample's
     Huber loss is weighted before the mean.
+
+    ``joint``, when given, maps the online network's summary of ``batch.obs`` ``(B, n)``
+    (:meth:`~latentdrive.models.vfan.QNetwork.summary`, attention reader) to a scalar loss
+    that is added to the Q-loss: one forward pass of the observations and one backward pass
+    serve both (``dqn.aux_joint``). Its own parameters (a head) get their gradients from
+    the same backward pass; stepping them is the caller's. The returned loss is the Q-loss
+    alone.
     """
     device = batch.obs.device
     with torch.no_grad(), autocast(dtype, device):
         q_target_next = target(batch.next_obs).float()
         q_online_next = online(batch.next_obs).float() if cfg.double else q_target_next
     y = td_targets(batch.reward, batch.bootstrap, q_online_next, q_target_next, cfg.gamma, cfg.double, batch.steps)
+    z: Tensor | None = None
     with autocast(dtype, device):
-        q_all = online(batch.obs)
+        if joint is None:
+            q_all = online(batch.obs)
+        else:
+            if not isinstance(online, QNetwork):
+                raise TypeError("a joint loss reads a QNetwork's summary")
+            z = online.summary(batch.obs)
+            q_all = online.q_from_summary(z)
     q = q_all.float().gather(1, batch.action[:, None]).squeeze(1)
     if batch.weight is None:
         loss = F.huber_loss(q, y, delta=cfg.huber_delta)
     else:
         loss = (F.huber_loss(q, y, delta=cfg.huber_delta, reduction="none") * batch.weight).mean()
+    total = loss if joint is None or z is None else loss + joint(z)
     optimizer.zero_grad(set_to_none=True)
-    loss.backward()
+    total.backward()
     params = [p for g in optimizer.param_groups for p in g["params"]]
     nn.utils.clip_grad_norm_(params, cfg.grad_clip)
     optimizer.step()

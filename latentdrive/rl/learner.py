@@ -196,11 +196,18 @@ class Learner:
         if d.augment_shift:
             batch = batch._replace(obs=random_shift(batch.obs, d.augment_shift, self.rng),
                                    next_obs=random_shift(batch.next_obs, d.augment_shift, self.rng))
-        stats = update(self.net, self.target, self.optimizer, batch, d, self.dtype)
+        joint = None
+        if self.aux is not None and self.aux.joint:
+            assert batch.slots is not None
+            joint = self.aux.joint_term(self.replay.obs_id[batch.slots], self.device, self.dtype)
+        stats = update(self.net, self.target, self.optimizer, batch, d, self.dtype, joint=joint)
         self.losses.append(stats.loss)
         if self.aux is not None:
             assert batch.slots is not None
-            self.aux.step(self.net, batch.obs, self.replay.obs_id[batch.slots], self.dtype)
+            if self.aux.joint:
+                self.aux.step_head()
+            else:
+                self.aux.step(self.net, batch.obs, self.replay.obs_id[batch.slots], self.dtype)
         if batch.slots is not None and d.prioritized:
             self.replay.update_priorities(batch.slots, stats.td_error.cpu().numpy())
         self.updates += 1

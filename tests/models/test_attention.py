@@ -53,6 +53,19 @@ def test_the_other_cells_are_read_as_a_set():
         assert not torch.allclose(before, body(x), atol=1e-4)
 
 
+@pytest.mark.parametrize("dueling", [False, True])
+def test_q_values_from_the_summary_are_the_networks_own(dueling):
+    # A loss on the summary shares the Q-loss's forward pass (dqn.aux_joint) only if the
+    # Q-values read from it are those forward() gives.
+    torch.manual_seed(0)
+    net = QNetwork(VFANConfig(reader="attention", hidden=32, attention_width=16), "raw", (4, 2, 16, 32),
+                   dueling=dueling, geometry=(1.5, 8.0))
+    x = torch.rand(3, 4, 2, 16, 32)
+    assert torch.equal(net.q_from_summary(net.summary(x)), net(x))
+    with pytest.raises(ValueError, match="attention reader"):
+        QNetwork(VFANConfig(), "raw", (4, 4, 32, 64)).q_from_summary(torch.rand(3, 128))
+
+
 @pytest.mark.parametrize(("context", "sees"), [(0, 1), (1, 3), (2, 5)])
 def test_context_layers_widen_what_the_observers_token_sees(context, sees):
     # Cells changed in one token-sized block at a time, ``k`` tokens ahead of the

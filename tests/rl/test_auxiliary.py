@@ -1,14 +1,20 @@
 """The auxiliary loss (dqn.aux_scale): what it stores, what it moves, and when it is refused."""
 
+import copy
+
 import numpy as np
 import pytest
 import torch
+import torch.nn.functional as F
 
-from latentdrive.config import ConfigError
+from latentdrive.config import ConfigError, ObservationConfig
 from latentdrive.models.vfan import QNetwork, VFANConfig
-from latentdrive.rl.auxiliary import aux_head, aux_step, scene_targets
+from latentdrive.observe.state import view_target_size
+from latentdrive.rl.auxiliary import AuxLearning, aux_head, aux_step, scene_targets
+from latentdrive.rl.dqn import DQNConfig, td_targets, update
 from latentdrive.rl.learner import Learner
 from latentdrive.rl.policy import build_network, load_policy_network
+from latentdrive.rl.replay import Batch
 from latentdrive.rl.train import train_policy
 from latentdrive.rollout import rollout
 from latentdrive.vec import make_vec
@@ -70,6 +76,68 @@ def test_the_auxiliary_step_fits_the_targets_and_leaves_the_q_head_alone():
     assert last < 0.3 * first
     assert all(torch.equal(a, b) for a, b in zip(q_head, net.body.get_submodule("head").parameters(), strict=True))
     assert not all(torch.equal(a, b) for a, b in zip(stem, net.body.get_submodule("stem").parameters(), strict=True))
+
+
+def _net_and_batch(seed=0):
+    torch.manual_seed(seed)
+    net = QNetwork(VFANConfig(reader="attention", hidden=32, attention_width=16), "raw", (4, 2, 16, 32),
+                   geometry=(1.5, 8.0))
+    b = 16
+    batch = Batch(torch.rand(b, 4, 2, 16, 32), torch.randint(0, 5, (b,)), torch.rand(b), torch.rand(b, 4, 2, 16, 32),
+                  torch.ones(b))
+    return net, batch
+
+
+def test_a_joint_update_steps_on_the_sum_of_the_q_loss_and_the_term():
+    cfg = DQNConfig(lr=1e-3)
+    net, batch = _net_and_batch()
+    target = copy.deepcopy(net)
+    # A term of zero changes nothing: the Q-values read from the summary are forward()'s.
+    plain, joint = copy.deepcopy(net), copy.deepcopy(net)
+    opt_p, opt_j = (torch.optim.Adam(m.parameters(), lr=1e-3) for m in (plain, joint))
+    a = update(plain, target, opt_p, batch, cfg)
+    b = update(joint, target, opt_j, batch, cfg, joint=lambda z: 0.0 * z.sum())
+    assert a.loss == b.loss
+    assert all(torch.equal(p, q) for p, q in zip(plain.parameters(), joint.parameters(), strict=True))
+    # With a term, the gradient is that of the sum, from one backward pass: SGD's step
+    # shows it exactly.
+    head = aux_head(net.summary_size, 8, 1)
+    targets = torch.rand(16, view_target_size(1))
+    by_hand = copy.deepcopy(net)
+    sgd = torch.optim.SGD(net.parameters(), lr=0.1)
+    stats = update(net, target, sgd, batch, cfg, joint=lambda z: 2.0 * F.mse_loss(head(z), targets))
+    with torch.no_grad():
+        y = td_targets(batch.reward, batch.bootstrap, by_hand(batch.next_obs), target(batch.next_obs), cfg.gamma, True)
+    q = by_hand(batch.obs).gather(1, batch.action[:, None]).squeeze(1)
+    total = F.huber_loss(q, y) + 2.0 * F.mse_loss(head(by_hand.summary(batch.obs)), targets)
+    grads = torch.autograd.grad(total, list(by_hand.parameters()))
+    assert stats.loss == pytest.approx(float(F.huber_loss(q, y).detach()), rel=1e-6)
+    norm = float(torch.linalg.vector_norm(torch.stack([torch.linalg.vector_norm(g) for g in grads])))
+    clip = min(1.0, cfg.grad_clip / (norm + 1e-6))
+    for p, before, g in zip(net.parameters(), by_hand.parameters(), grads, strict=True):
+        torch.testing.assert_close(p, before - 0.1 * clip * g, rtol=1e-4, atol=1e-6)
+
+
+def test_the_joint_auxiliary_loss_fits_the_targets_through_the_q_update():
+    cfg = DQNConfig(lr=3e-3, aux_scale=1.0, aux_joint=True, aux_neighbours=1)
+    net, batch = _net_and_batch(1)
+    target = copy.deepcopy(net)
+    aux = AuxLearning(net, cfg, ObservationConfig(), 64, torch.device("cpu"))
+    # Joint: the head's own optimizer moves the head alone; the reader moves with the Q-learner's.
+    assert {id(p) for g in aux.optimizer.param_groups for p in g["params"]} == {id(p) for p in aux.head.parameters()}
+    aux.store.add(np.random.default_rng(0).random((16, view_target_size(1)), dtype=np.float32), np.arange(16))
+    opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
+    stem = [p.detach().clone() for p in net.body.get_submodule("stem").parameters()]
+    for _ in range(150):
+        update(net, target, opt, batch, cfg, joint=aux.joint_term(np.arange(16), torch.device("cpu"), torch.float32))
+        aux.step_head()
+    assert aux.losses[-1] < 0.3 * aux.losses[0]
+    assert not all(torch.equal(a, b) for a, b in zip(stem, net.body.get_submodule("stem").parameters(), strict=True))
+
+
+def test_joint_without_the_auxiliary_loss_is_refused():
+    with pytest.raises(ValueError, match=r"aux_joint.*aux_scale"):
+        DQNConfig(aux_joint=True)
 
 
 @pytest.mark.parametrize("changes", [{"vfan": {}}, {"vfan": {"reader": "attention"}, "learner": "dagger"}])
