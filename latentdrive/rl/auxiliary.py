@@ -15,10 +15,10 @@ The Q-learner's update and its optimizer's moments stay those of :func:`~latentd
 
 With ``aux_joint`` the squared error, times ``aux_scale``, is added to the Q update's loss
 instead: the reader's summary of the sampled maps is computed once and one backward pass
-serves both losses, about 1.05 times a Q update's arithmetic instead of about 1.5 times.
-The reader then moves by the Q-learner's Adam step on the summed gradient, so the scale is
-a weight on the loss, not on the rate, and the two losses share the optimizer's moments;
-the head has an Adam of its own at ``dqn.lr``.
+serves both losses, about 1.01 times a Q update's arithmetic instead of about 1.56 times.
+The reader then moves by the Q-learner's gradient clip and Adam step on the summed
+gradient, so the scale is a weight on the loss, not on the rate, and the two losses share
+the optimizer's moments; the head has an Adam of its own at ``dqn.lr``.
 
 The head is used in training only: the policy reads the map and nothing else.
 """
@@ -76,8 +76,9 @@ class AuxLearning:
 
     Args:
         net: the Q-network (reader 'attention'); its trainable parameters and the head's
-            are what the auxiliary optimizer moves.
-        cfg: ``aux_scale``, ``aux_neighbours``, ``lr``, ``adam_eps``.
+            are what the auxiliary optimizer moves (with ``aux_joint``, the head's alone:
+            the reader moves with the Q-learner's optimizer).
+        cfg: ``aux_scale``, ``aux_joint``, ``aux_neighbours``, ``lr``, ``adam_eps``.
         obs: the VelocityMap's settings (its view box).
         capacity: the observation store's capacity.
     """
@@ -93,6 +94,7 @@ class AuxLearning:
                                           eps=cfg.adam_eps)
         self.store = LatentStore(capacity, (view_target_size(self.k),))
         self.losses: list[float] = []
+        self._pending: Tensor | None = None
 
     def targets(self, scenes: NDArray[np.object_]) -> NDArray[np.float32]:
         """:func:`scene_targets` of ``scenes`` ``(num_envs,)`` → ``(num_envs, n_av, n)``."""
@@ -112,10 +114,10 @@ class AuxLearning:
 
     def joint_term(self, ids: NDArray[np.int64], device: torch.device, dtype: torch.dtype) -> Callable[[Tensor], Tensor]:
         """The term :func:`~latentdrive.rl.dqn.update` adds to its Q-loss (``aux_joint``)
-        for sampled observations whose ids are ``ids``: ``aux_scale`` × the squared error of
-        the head's prediction from the summary ``z`` ``(B, n)`` (forward in ``dtype``, loss
-        in fp32). Clears the head's gradients now; :meth:`step_head` steps it after the
-        backward pass."""
+        for sampled observations whose ids are ``ids`` ``(B,)``: ``aux_scale`` × the squared
+        error of the head's prediction from the summary ``z`` ``(B, summary_size)`` against
+        their targets (forward in ``dtype``, loss in fp32). Clears the head's gradients now;
+        :meth:`step_head` steps it after the backward pass."""
         targets = torch.from_numpy(self.store.get(ids)).to(device)
         self.optimizer.zero_grad(set_to_none=True)
 
@@ -123,7 +125,8 @@ class AuxLearning:
             with autocast(dtype, device):
                 pred = self.head(z)
             loss = F.mse_loss(pred.float(), targets)
-            self.losses.append(float(loss.detach()))
+            # Read after the step: a float() here would make a GPU wait between the passes.
+            self._pending = loss.detach()
             return self.scale * loss
 
         return term
@@ -131,6 +134,9 @@ class AuxLearning:
     def step_head(self) -> None:
         """The head's Adam step after a joint update's backward pass."""
         self.optimizer.step()
+        if self._pending is not None:
+            self.losses.append(float(self._pending))
+            self._pending = None
 
     def arrays(self) -> dict[str, np.ndarray]:
         """The stored targets, for the replay's file (keys ``aux/...``)."""

@@ -53,8 +53,8 @@ class DQNConfig(Config):
     eps_end: float = Field(0.05, ge=0.0, le=1.0, description="ε after the decay.")
     eps_fraction: float = Field(0.3, gt=0.0, le=1.0, description="Share of the transition budget over which ε decays linearly.")
     augment_shift: int = Field(0, ge=0, le=8, description="Random-shift augmentation (DrQ): every sampled map and next map is moved by up to this many cells along each axis (edge cells repeated), independently per sample, before the update. Modes that read the map only (raw, end-to-end); 0, the default, is off.")
-    aux_scale: float = Field(0.0, ge=0.0, le=100.0, description="Auxiliary loss that teaches the map reader to see the vehicles (latentdrive.rl.auxiliary): after each Q update, an Adam step of its own at aux_scale × lr trains the reader and a small head to predict, from the map, the AV's speed and lane speed and its aux_neighbours nearest vehicles inside the map's view, read exactly from the Scene. Training only: the policy reads the map alone. vfan.reader 'attention' only; 0, the default, is off.")
-    aux_joint: bool = Field(False, description="How the auxiliary loss (aux_scale > 0) trains the reader. False: after each Q update, an Adam step of its own at aux_scale × lr, with its own forward and backward pass of the sampled maps (about 1.5 times a Q update's arithmetic). True: aux_scale × its squared error is added to the Q update's loss, so one forward and one backward pass of the maps, and the Q-learner's Adam step, serve both (about 1.05 times); the head keeps an Adam of its own at lr.")
+    aux_scale: float = Field(0.0, ge=0.0, le=100.0, description="Auxiliary loss that teaches the map reader to see the vehicles (latentdrive.rl.auxiliary): after each Q update, an Adam step of its own at aux_scale × lr (or, with aux_joint, a term weighted aux_scale in the Q update's loss) trains the reader and a small head to predict, from the map, the AV's speed and lane speed and its aux_neighbours nearest vehicles inside the map's view, read exactly from the Scene. Training only: the policy reads the map alone. vfan.reader 'attention' only; 0, the default, is off.")
+    aux_joint: bool = Field(False, description="How the auxiliary loss (aux_scale > 0) trains the reader. False: after each Q update, an Adam step of its own at aux_scale × lr, with its own forward and backward pass of the sampled maps (about 1.56 times a Q update's arithmetic). True: aux_scale × its squared error is added to the Q update's loss, so one forward and one backward pass of the maps, the Q-learner's gradient clip and its Adam step serve both (about 1.01 times); the head keeps an Adam of its own at lr. Needs aux_scale > 0.")
     aux_neighbours: int = Field(12, ge=1, le=64, description="Vehicles whose offsets, velocity differences, headings, kinds and crashed flags the auxiliary loss asks for (aux_scale > 0), nearest first.")
     explore_rule: float = Field(0.0, ge=0.0, le=1.0, description="Share of the exploratory actions (those ε-greedy plays instead of the greedy one) that the rule driver of evaluate --policy rule chooses instead of a uniform random action. Exploration guided toward the states a car follower reaches; one-step Q-learning, off-policy, still learns the greedy policy's values, while n-step returns (no off-policy correction) also follow the guide's later actions. 0, the default, is plain ε-greedy.")
 
@@ -152,12 +152,13 @@ def update(online: nn.Module, target: nn.Module, optimizer: torch.optim.Optimize
     loss are computed in fp32. With importance weights (``batch.weight``) each sample's
     Huber loss is weighted before the mean.
 
-    ``joint``, when given, maps the online network's summary of ``batch.obs`` ``(B, n)``
-    (:meth:`~latentdrive.models.vfan.QNetwork.summary`, attention reader) to a scalar loss
+    ``joint``, when given, maps the online network's summary of ``batch.obs``
+    ``(B, 2·attention_width)`` (:meth:`~latentdrive.models.vfan.QNetwork.summary`,
+    attention reader) to a scalar loss
     that is added to the Q-loss: one forward pass of the observations and one backward pass
-    serve both (``dqn.aux_joint``). Its own parameters (a head) get their gradients from
-    the same backward pass; stepping them is the caller's. The returned loss is the Q-loss
-    alone.
+    serve both (``dqn.aux_joint``), and the gradient clip applies to their summed gradient.
+    Its own parameters (a head) get their gradients from the same backward pass; stepping
+    them is the caller's. The returned loss is the Q-loss alone.
     """
     device = batch.obs.device
     with torch.no_grad(), autocast(dtype, device):
@@ -178,7 +179,11 @@ def update(online: nn.Module, target: nn.Module, optimizer: torch.optim.Optimize
         loss = F.huber_loss(q, y, delta=cfg.huber_delta)
     else:
         loss = (F.huber_loss(q, y, delta=cfg.huber_delta, reduction="none") * batch.weight).mean()
-    total = loss if joint is None or z is None else loss + joint(z)
+    if joint is not None:
+        assert z is not None
+        total = loss + joint(z)
+    else:
+        total = loss
     optimizer.zero_grad(set_to_none=True)
     total.backward()
     params = [p for g in optimizer.param_groups for p in g["params"]]

@@ -128,11 +128,45 @@ def test_the_joint_auxiliary_loss_fits_the_targets_through_the_q_update():
     aux.store.add(np.random.default_rng(0).random((16, view_target_size(1)), dtype=np.float32), np.arange(16))
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr)
     stem = [p.detach().clone() for p in net.body.get_submodule("stem").parameters()]
-    for _ in range(150):
-        update(net, target, opt, batch, cfg, joint=aux.joint_term(np.arange(16), torch.device("cpu"), torch.float32))
+    head = [p.detach().clone() for p in aux.head.parameters()]
+    ids, cpu = np.arange(16), torch.device("cpu")
+    targets = torch.from_numpy(aux.store.get(ids))
+    for step in range(150):
+        before = copy.deepcopy(net)
+        update(net, target, opt, batch, cfg, joint=aux.joint_term(ids, cpu, torch.float32))
+        if step < 2:
+            # The head's gradient is this step's alone (cleared before the backward pass):
+            # that of aux_scale × its squared error on the summary the update saw.
+            with torch.no_grad():
+                z = before.summary(batch.obs)
+            want = torch.autograd.grad(cfg.aux_scale * F.mse_loss(aux.head(z), targets), list(aux.head.parameters()))
+            for p, g in zip(aux.head.parameters(), want, strict=True):
+                assert p.grad is not None
+                torch.testing.assert_close(p.grad, g)
         aux.step_head()
+    assert len(aux.losses) == 150
     assert aux.losses[-1] < 0.3 * aux.losses[0]
     assert not all(torch.equal(a, b) for a, b in zip(stem, net.body.get_submodule("stem").parameters(), strict=True))
+    assert not any(torch.equal(a, b) for a, b in zip(head, aux.head.parameters(), strict=True))
+
+
+@pytest.mark.parametrize("joint", [False, True])
+def test_the_learner_takes_the_step_its_config_names(tmp_path, tiny, monkeypatch, joint):
+    calls = {"separate": 0, "head": 0}
+    separate, step_head = AuxLearning.step, AuxLearning.step_head
+
+    def counted(name, fn):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return fn(*args, **kwargs)
+        return wrapper
+
+    monkeypatch.setattr(AuxLearning, "step", counted("separate", separate))
+    monkeypatch.setattr(AuxLearning, "step_head", counted("head", step_head))
+    cfg = tiny(mode="raw", steps=150, dqn={**AUX, "aux_joint": joint}, vfan={"reader": "attention", "hidden": 32})
+    result = train_policy(cfg, tmp_path / "run", progress=False, say=lambda _line: None)
+    assert result["updates"] > 0
+    assert calls == ({"separate": 0, "head": result["updates"]} if joint else {"separate": result["updates"], "head": 0})
 
 
 def test_joint_without_the_auxiliary_loss_is_refused():
