@@ -25,7 +25,8 @@ The head is used in training only: the policy reads the map and nothing else.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
+from typing import NamedTuple
 
 import numpy as np
 import torch
@@ -36,11 +37,11 @@ from torch import Tensor, nn
 from latentdrive.config import ObservationConfig
 from latentdrive.models.vfan import QNetwork
 from latentdrive.observe.state import view_target_size, view_targets
-from latentdrive.rl.dqn import DQNConfig
-from latentdrive.rl.replay import LatentStore
+from latentdrive.rl.dqn import DQNConfig, losses
+from latentdrive.rl.replay import Batch, LatentStore
 from latentdrive.runtime import autocast
 
-__all__ = ["AuxLearning", "aux_head", "aux_step", "scene_targets"]
+__all__ = ["AuxLearning", "GradientShare", "aux_head", "aux_step", "gradient_share", "scene_targets"]
 
 
 def aux_head(features: int, hidden: int, k: int) -> nn.Sequential:
@@ -67,6 +68,36 @@ def aux_step(summary: Callable[[Tensor], Tensor], head: nn.Module, optimizer: to
     loss.backward()
     optimizer.step()
     return float(loss.detach())
+
+
+class GradientShare(NamedTuple):
+    """:func:`gradient_share`'s result for one minibatch."""
+
+    q_loss: float  #: the Huber Q-loss
+    aux_loss: float  #: aux_scale × the auxiliary squared error (the joint term)
+    q_norm: float  #: L2 norm of the Q-loss's gradient on the parameters both losses reach
+    aux_norm: float  #: L2 norm of the joint term's gradient on the same parameters
+
+
+def gradient_share(net: QNetwork, target: nn.Module, head: nn.Module, batch: Batch, targets: Tensor,
+                   cfg: DQNConfig) -> GradientShare:
+    """How much of a joint update's (``aux_joint``) step on the reader the auxiliary loss
+    takes: the norms of the gradients of the Q-loss and of ``aux_scale`` × the head's
+    squared error against ``targets`` ``(B, n)``, on ``batch``, over the parameters both
+    reach (the reader; not the Q head, not the auxiliary head). Adam steps the sum, so the
+    ratio ``aux_norm / q_norm`` is the auxiliary loss's weight in the reader's direction.
+    In fp32; moves nothing."""
+    parts = losses(net, target, batch, cfg, joint=lambda z: cfg.aux_scale * F.mse_loss(head(z).float(), targets))
+    assert parts.joint is not None
+    params = net.trainable_parameters()
+    g_aux = torch.autograd.grad(parts.joint, params, retain_graph=True, allow_unused=True)
+    shared = [i for i, g in enumerate(g_aux) if g is not None]
+    g_q = torch.autograd.grad(parts.q, [params[i] for i in shared], allow_unused=True)
+
+    def norm(gs: Iterable[Tensor | None]) -> float:
+        return float(torch.sqrt(sum(((g.float() ** 2).sum() for g in gs if g is not None), torch.zeros(()))))
+
+    return GradientShare(float(parts.q.detach()), float(parts.joint.detach()), norm(g_q), norm(g_aux[i] for i in shared))
 
 
 class AuxLearning:

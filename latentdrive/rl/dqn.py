@@ -21,8 +21,8 @@ from latentdrive.models.vfan import QNetwork
 from latentdrive.rl.replay import Batch
 from latentdrive.runtime import autocast
 
-__all__ = ["DQNConfig", "UpdateStats", "epsilon", "linear_decay", "priority_beta", "soft_update", "target_step", "td_targets", "update",
-           "updates_owed"]
+__all__ = ["DQNConfig", "Losses", "UpdateStats", "epsilon", "linear_decay", "losses", "priority_beta", "soft_update",
+           "target_step", "td_targets", "update", "updates_owed"]
 
 #: Largest denominator of ``updates_per_transition`` (the ratio is kept as an exact fraction).
 MAX_RATIO_DENOMINATOR = 1024
@@ -143,10 +143,18 @@ class UpdateStats(NamedTuple):
     td_error: Tensor
 
 
-def update(online: nn.Module, target: nn.Module, optimizer: torch.optim.Optimizer, batch: Batch,
-           cfg: DQNConfig, dtype: torch.dtype = torch.float32,
-           joint: Callable[[Tensor], Tensor] | None = None) -> UpdateStats:
-    """One gradient step on ``batch``.
+class Losses(NamedTuple):
+    """What one minibatch's update descends (:func:`losses`)."""
+
+    q: Tensor  #: the Huber Q-loss, fp32 scalar
+    joint: Tensor | None  #: the joint term (``joint``), fp32 scalar, or None
+    q_taken: Tensor  #: (B,) Q-values of the actions taken, fp32
+    target: Tensor  #: (B,) their TD targets, fp32, no gradient
+
+
+def losses(online: nn.Module, target: nn.Module, batch: Batch, cfg: DQNConfig, dtype: torch.dtype = torch.float32,
+           joint: Callable[[Tensor], Tensor] | None = None) -> Losses:
+    """The Q-loss of ``batch`` (and a joint term) with their graphs, before any step.
 
     Forward passes run in ``dtype`` (bf16 autocast, or fp32); targets, TD errors and the
     loss are computed in fp32. With importance weights (``batch.weight``) each sample's
@@ -154,11 +162,9 @@ def update(online: nn.Module, target: nn.Module, optimizer: torch.optim.Optimize
 
     ``joint``, when given, maps the online network's summary of ``batch.obs``
     ``(B, 2·attention_width)`` (:meth:`~latentdrive.models.vfan.QNetwork.summary`,
-    attention reader) to a scalar loss
-    that is added to the Q-loss: one forward pass of the observations and one backward pass
-    serve both (``dqn.aux_joint``), and the gradient clip applies to their summed gradient.
-    Its own parameters (a head) get their gradients from the same backward pass; stepping
-    them is the caller's. The returned loss is the Q-loss alone.
+    attention reader) to a scalar loss: the Q-values are read from the same summary
+    (:meth:`~latentdrive.models.vfan.QNetwork.q_from_summary`), so one forward pass of the
+    observations serves both.
     """
     device = batch.obs.device
     with torch.no_grad(), autocast(dtype, device):
@@ -179,17 +185,27 @@ def update(online: nn.Module, target: nn.Module, optimizer: torch.optim.Optimize
         loss = F.huber_loss(q, y, delta=cfg.huber_delta)
     else:
         loss = (F.huber_loss(q, y, delta=cfg.huber_delta, reduction="none") * batch.weight).mean()
-    if joint is not None:
-        assert z is not None
-        total = loss + joint(z)
-    else:
-        total = loss
+    return Losses(loss, None if joint is None or z is None else joint(z), q, y)
+
+
+def update(online: nn.Module, target: nn.Module, optimizer: torch.optim.Optimizer, batch: Batch,
+           cfg: DQNConfig, dtype: torch.dtype = torch.float32,
+           joint: Callable[[Tensor], Tensor] | None = None) -> UpdateStats:
+    """One gradient step on ``batch``'s :func:`losses`.
+
+    With ``joint`` (``dqn.aux_joint``) the term is added to the Q-loss: one backward pass
+    serves both, and the gradient clip applies to their summed gradient. The term's own
+    parameters (a head) get their gradients from the same backward pass; stepping them is
+    the caller's. The returned loss is the Q-loss alone.
+    """
+    parts = losses(online, target, batch, cfg, dtype, joint)
+    total = parts.q if parts.joint is None else parts.q + parts.joint
     optimizer.zero_grad(set_to_none=True)
     total.backward()
     params = [p for g in optimizer.param_groups for p in g["params"]]
     nn.utils.clip_grad_norm_(params, cfg.grad_clip)
     optimizer.step()
-    return UpdateStats(float(loss.detach()), (q.detach() - y).abs())
+    return UpdateStats(float(parts.q.detach()), (parts.q_taken.detach() - parts.target).abs())
 
 
 def target_step(target: nn.Module, online: nn.Module, cfg: DQNConfig, updates: int) -> None:

@@ -1,6 +1,8 @@
 """The auxiliary loss (dqn.aux_scale): what it stores, what it moves, and when it is refused."""
 
 import copy
+import runpy
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,7 +12,7 @@ import torch.nn.functional as F
 from latentdrive.config import ConfigError, ObservationConfig
 from latentdrive.models.vfan import QNetwork, VFANConfig
 from latentdrive.observe.state import view_target_size
-from latentdrive.rl.auxiliary import AuxLearning, aux_head, aux_step, scene_targets
+from latentdrive.rl.auxiliary import AuxLearning, aux_head, aux_step, gradient_share, scene_targets
 from latentdrive.rl.dqn import DQNConfig, td_targets, update
 from latentdrive.rl.learner import Learner
 from latentdrive.rl.policy import build_network, load_policy_network
@@ -186,3 +188,39 @@ def test_a_run_with_the_auxiliary_loss_evaluates_from_its_folder(tmp_path, tiny)
     assert result["updates"] > 0
     net, _ = load_policy_network(tmp_path / "run")
     assert not any(name.startswith("aux") for name in net.state_dict())
+
+
+def test_the_gradient_share_measures_each_loss_on_the_reader_and_moves_nothing():
+    net, batch = _net_and_batch(2)
+    target = copy.deepcopy(net)
+    head = aux_head(net.summary_size, 8, 1)
+    targets = torch.rand(16, view_target_size(1))
+    before = [p.detach().clone() for p in [*net.parameters(), *head.parameters()]]
+    one = gradient_share(net, target, head, batch, targets, DQNConfig(aux_scale=1.0))
+    three = gradient_share(net, target, head, batch, targets, DQNConfig(aux_scale=3.0))
+    assert all(torch.equal(a, b) for a, b in zip(before, [*net.parameters(), *head.parameters()], strict=True))
+    assert three.q_norm == one.q_norm and three.q_loss == one.q_loss
+    assert three.aux_norm == pytest.approx(3 * one.aux_norm, rel=1e-5)
+    assert three.aux_loss == pytest.approx(3 * one.aux_loss, rel=1e-5)
+    # The Q-loss's gradient on the reader only: the Q head is what the auxiliary loss never reaches.
+    reader = [p for name, p in net.named_parameters() if not name.startswith("body.head.")]
+    with torch.no_grad():
+        y = td_targets(batch.reward, batch.bootstrap, net(batch.next_obs), target(batch.next_obs), 0.95, True)
+    q = net(batch.obs).gather(1, batch.action[:, None]).squeeze(1)
+    grads = torch.autograd.grad(F.huber_loss(q, y), reader)
+    assert one.q_norm == pytest.approx(float(torch.linalg.vector_norm(torch.cat([g.flatten() for g in grads]))), rel=1e-5)
+
+
+def test_the_share_script_reads_a_runs_checkpoint_and_refuses_a_run_without_the_loss(tmp_path, tiny, capsys):
+    script = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "aux_share.py"), run_name="aux_share")
+    cfg = tiny(mode="raw", steps=150, dqn={**AUX, "aux_joint": True}, vfan={"reader": "attention", "hidden": 32})
+    train_policy(cfg, tmp_path / "run", progress=False, say=lambda _line: None)
+    assert script["main"]([str(tmp_path / "run"), "--batches", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "(joint)" in out and "aux / Q" in out
+    ratio = float(out.split("aux / Q")[1].split()[0])
+    assert np.isfinite(ratio) and ratio > 0
+    train_policy(tiny(mode="raw", steps=100), tmp_path / "plain", progress=False, say=lambda _line: None)
+    assert script["main"]([str(tmp_path / "plain")]) == 2
+    err = capsys.readouterr().err
+    assert "aux_scale is 0" in err and err.count("\n") == 1

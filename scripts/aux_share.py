@@ -1,0 +1,72 @@
+"""How much of the reader's step the auxiliary loss takes in a run with ``dqn.aux_scale``.
+
+    python scripts/aux_share.py RUN [--batches 20] [--scale S]
+
+Loads a policy run's checkpoint as ``train-policy --resume`` would (its network, target
+network, auxiliary head and replay), samples ``--batches`` minibatches of its replay (seed
+0, so every call reads the same ones), and prints the means of
+:func:`latentdrive.rl.auxiliary.gradient_share`: the Q-loss, the auxiliary term
+(``aux_scale`` × the head's squared error), and the norms of their gradients on the reader.
+With ``dqn.aux_joint`` the Q-learner's Adam steps their sum, so ``aux / Q`` says how much
+of the reader's direction the auxiliary loss sets; without it, the auxiliary loss takes an
+Adam step of its own, whatever its norm. ``--scale S`` computes the term as if
+``aux_scale`` were ``S`` (its gradient grows in proportion). Moves and writes nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from latentdrive.bnn.checkpoint import CheckpointError
+from latentdrive.config import ConfigError, validate
+from latentdrive.rl.auxiliary import gradient_share
+from latentdrive.rl.config import PolicyTrainConfig
+from latentdrive.rl.learner import Learner
+from latentdrive.rl.policy import build_network, read_run_config
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run", type=Path)
+    ap.add_argument("--batches", type=int, default=20, help="minibatches averaged (default 20)")
+    ap.add_argument("--scale", type=float, default=None, help="aux_scale to compute the term with (default: the run's)")
+    args = ap.parse_args(argv)
+    if args.batches < 1:
+        raise SystemExit(f"--batches must be at least 1, got {args.batches}")
+    try:
+        cfg = validate(PolicyTrainConfig, read_run_config(args.run)["train"])
+        if cfg.dqn.aux_scale == 0:
+            raise ConfigError(f"{args.run}: trained without the auxiliary loss (dqn.aux_scale is 0)")
+        dqn = cfg.dqn if args.scale is None else cfg.dqn.model_copy(update={"aux_scale": args.scale})
+        # A finished run restores its replay only with training left: ask for one more step.
+        cfg = cfg.model_copy(update={"steps": 10**12})
+        torch.manual_seed(0)
+        net = build_network(cfg, None)
+        learner = Learner(cfg, net, torch.device("cpu"), cfg.envs * cfg.scenario_specs()[0].n_av)
+        learner.load(args.run)
+    except (ConfigError, CheckpointError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    assert learner.aux is not None
+    rng = np.random.default_rng(0)
+    rows = []
+    for _ in range(args.batches):
+        batch = learner.replay.sample(rng, dqn.batch_size, torch.device("cpu"))
+        assert batch.slots is not None
+        targets = torch.from_numpy(learner.aux.store.get(learner.replay.obs_id[batch.slots]))
+        rows.append(gradient_share(net, learner.target, learner.aux.head, batch, targets, dqn))
+    r = np.asarray(rows, dtype=np.float64)
+    print(f"{args.run}: {learner.transitions} agent-transitions, {learner.updates} updates; aux_scale {dqn.aux_scale:g}"
+          f"{' (joint)' if cfg.dqn.aux_joint else ''}; means over {args.batches} minibatches of {dqn.batch_size}")
+    print(f"Q-loss {r[:, 0].mean():.4f}  auxiliary term {r[:, 1].mean():.4f}  reader gradient norm: "
+          f"Q {r[:, 2].mean():.4f}, auxiliary {r[:, 3].mean():.4f}, aux / Q {np.mean(r[:, 3] / r[:, 2]):.2f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
