@@ -73,9 +73,9 @@ def test_the_update_learns_from_shifted_observations_and_next_observations(tmp_p
         assert pad == 1
         return random_shift(maps, pad, rng) + 1000.0  # a mark no real map cell carries
 
-    def spying_update(online, target, optimizer, batch, cfg, dtype):
+    def spying_update(online, target, optimizer, batch, cfg, dtype, **kwargs):
         seen.append((float(batch.obs.min()), float(batch.next_obs.min())))
-        return real_update(online, target, optimizer, batch, cfg, dtype)
+        return real_update(online, target, optimizer, batch, cfg, dtype, **kwargs)
 
     monkeypatch.setattr(learner_module, "random_shift", marked_shift)
     monkeypatch.setattr(learner_module, "update", spying_update)
