@@ -25,7 +25,7 @@ The head is used in training only: the policy reads the map and nothing else.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from typing import NamedTuple
 
 import numpy as np
@@ -41,7 +41,7 @@ from latentdrive.rl.dqn import DQNConfig, losses
 from latentdrive.rl.replay import Batch, LatentStore
 from latentdrive.runtime import autocast
 
-__all__ = ["AuxLearning", "GradientShare", "aux_head", "aux_step", "gradient_share", "scene_targets"]
+__all__ = ["AuxLearning", "GradientShare", "aux_error", "aux_head", "aux_step", "gradient_share", "scene_targets"]
 
 
 def aux_head(features: int, hidden: int, k: int) -> nn.Sequential:
@@ -56,14 +56,23 @@ def scene_targets(scenes: NDArray[np.object_], obs: ObservationConfig, k: int) -
     return np.stack([view_targets(s, obs, k) for s in scenes])
 
 
+def aux_error(head: nn.Module, z: Tensor, targets: Tensor, dtype: torch.dtype = torch.float32) -> Tensor:
+    """The auxiliary loss: the mean squared error of ``head(z)`` ``(B, n)`` against
+    ``targets`` ``(B, n)``, ``z`` the reader's summary; the head's forward pass in ``dtype``
+    (bf16 autocast or fp32), the error in fp32. Every form of the loss (the separate step,
+    the joint term, :func:`gradient_share`) computes it here."""
+    with autocast(dtype, z.device):
+        pred = head(z)
+    return F.mse_loss(pred.float(), targets)
+
+
 def aux_step(summary: Callable[[Tensor], Tensor], head: nn.Module, optimizer: torch.optim.Optimizer, obs: Tensor, targets: Tensor,
              dtype: torch.dtype = torch.float32) -> float:
-    """One step of the auxiliary loss: the mean squared error of ``head(summary(obs))``
-    ``(B, n)`` against ``targets`` ``(B, n)``; the forward pass in ``dtype`` (bf16 autocast
-    or fp32), the loss in fp32. Returns the loss."""
+    """One step of the auxiliary loss (:func:`aux_error` of ``summary(obs)``), the reader's
+    forward pass in ``dtype`` too. Returns the loss."""
     with autocast(dtype, obs.device):
-        pred = head(summary(obs))
-    loss = F.mse_loss(pred.float(), targets)
+        z = summary(obs)
+    loss = aux_error(head, z, targets, dtype)
     optimizer.zero_grad(set_to_none=True)
     loss.backward()
     optimizer.step()
@@ -87,17 +96,18 @@ def gradient_share(net: QNetwork, target: nn.Module, head: nn.Module, batch: Bat
     reach (the reader; not the Q head, not the auxiliary head). Adam steps the sum, so the
     ratio ``aux_norm / q_norm`` is the auxiliary loss's weight in the reader's direction.
     In fp32; moves nothing."""
-    parts = losses(net, target, batch, cfg, joint=lambda z: cfg.aux_scale * F.mse_loss(head(z).float(), targets))
+    parts = losses(net, target, batch, cfg, joint=lambda z: cfg.aux_scale * aux_error(head, z, targets))
     assert parts.joint is not None
     params = net.trainable_parameters()
     g_aux = torch.autograd.grad(parts.joint, params, retain_graph=True, allow_unused=True)
-    shared = [i for i, g in enumerate(g_aux) if g is not None]
-    g_q = torch.autograd.grad(parts.q, [params[i] for i in shared], allow_unused=True)
+    reader = [i for i, g in enumerate(g_aux) if g is not None]
+    g_q = torch.autograd.grad(parts.q, [params[i] for i in reader])
 
-    def norm(gs: Iterable[Tensor | None]) -> float:
-        return float(torch.sqrt(sum(((g.float() ** 2).sum() for g in gs if g is not None), torch.zeros(()))))
+    def norm(gs: list[Tensor]) -> float:
+        return float(torch.linalg.vector_norm(torch.cat([g.float().flatten() for g in gs])))
 
-    return GradientShare(float(parts.q.detach()), float(parts.joint.detach()), norm(g_q), norm(g_aux[i] for i in shared))
+    aux = [g for g in g_aux if g is not None]
+    return GradientShare(float(parts.q.detach()), float(parts.joint.detach()), norm(list(g_q)), norm(aux))
 
 
 class AuxLearning:
@@ -153,9 +163,7 @@ class AuxLearning:
         self.optimizer.zero_grad(set_to_none=True)
 
         def term(z: Tensor) -> Tensor:
-            with autocast(dtype, device):
-                pred = self.head(z)
-            loss = F.mse_loss(pred.float(), targets)
+            loss = aux_error(self.head, z, targets, dtype)
             # Read after the step: a float() here would make a GPU wait between the passes.
             self._pending = loss.detach()
             return self.scale * loss
