@@ -48,6 +48,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("dqn", "aux_scale"): 0.0,
     ("dqn", "aux_neighbours"): 12,
     ("dqn", "aux_joint"): False,
+    ("dqn", "aux_pretrain"): 0,
     ("keep",): "last",
     ("planner", "human_routes"): "known",
     ("vfan", "reader"): "conv",

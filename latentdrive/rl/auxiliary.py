@@ -20,6 +20,11 @@ The reader then moves by the Q-learner's gradient clip and Adam step on the summ
 gradient, so the scale is a weight on the loss, not on the rate, and the two losses share
 the optimizer's moments; the head has an Adam of its own at ``dqn.lr``.
 
+With ``aux_pretrain`` the reader and the head first take that many steps of the
+auxiliary loss alone, on the maps the replay holds when Q-learning starts, so that the
+Q-learner starts from a reader that already sees the vehicles
+(:meth:`AuxLearning.pretrain`).
+
 The head is used in training only: the policy reads the map and nothing else.
 """
 
@@ -135,7 +140,24 @@ class AuxLearning:
                                           eps=cfg.adam_eps)
         self.store = LatentStore(capacity, (view_target_size(self.k),))
         self.losses: list[float] = []
+        self.pretrain_losses: list[float] = []  # dqn.aux_pretrain's, until the run's log takes them
         self._pending: Tensor | None = None
+
+    def pretrain(self, net: QNetwork, draw: Callable[[], tuple[Tensor, NDArray[np.int64]]], steps: int, lr: float,
+                 adam_eps: float, dtype: torch.dtype, progress: bool = False) -> list[float]:
+        """``steps`` :func:`aux_step` s of the reader and the head together on observations
+        ``draw()`` gives (a batch and its store ids), under an Adam of their own at ``lr``
+        that is dropped afterwards: no Q-loss is involved, so the scale is not. Returns the
+        losses."""
+        from tqdm import tqdm
+
+        optimizer = torch.optim.Adam([*net.trainable_parameters(), *self.head.parameters()], lr=lr, eps=adam_eps)
+        out: list[float] = []
+        for _ in tqdm(range(steps), desc="pretrain reader", unit="step", leave=False, disable=not progress):
+            obs, ids = draw()
+            targets = torch.from_numpy(self.store.get(ids)).to(obs.device)
+            out.append(aux_step(net.summary, self.head, optimizer, obs, targets, dtype))
+        return out
 
     def targets(self, scenes: NDArray[np.object_]) -> NDArray[np.float32]:
         """:func:`scene_targets` of ``scenes`` ``(num_envs,)`` → ``(num_envs, n_av, n)``."""

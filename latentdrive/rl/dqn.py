@@ -55,6 +55,7 @@ class DQNConfig(Config):
     augment_shift: int = Field(0, ge=0, le=8, description="Random-shift augmentation (DrQ): every sampled map and next map is moved by up to this many cells along each axis (edge cells repeated), independently per sample, before the update. Modes that read the map only (raw, end-to-end); 0, the default, is off.")
     aux_scale: float = Field(0.0, ge=0.0, le=100.0, description="Auxiliary loss that teaches the map reader to see the vehicles (latentdrive.rl.auxiliary): after each Q update, an Adam step of its own at aux_scale × lr (or, with aux_joint, a term weighted aux_scale in the Q update's loss) trains the reader and a small head to predict, from the map, the AV's speed and lane speed and its aux_neighbours nearest vehicles inside the map's view, read exactly from the Scene. Training only: the policy reads the map alone. vfan.reader 'attention' only; 0, the default, is off.")
     aux_joint: bool = Field(False, description="How the auxiliary loss (aux_scale > 0) trains the reader. False: after each Q update, an Adam step of its own at aux_scale × lr, with its own forward and backward pass of the sampled maps (about 1.56 times a Q update's arithmetic). True: aux_scale × its squared error is added to the Q update's loss, so one forward and one backward pass of the maps, the Q-learner's gradient clip and its Adam step serve both (about 1.01 times); the head keeps an Adam of its own at lr. Needs aux_scale > 0.")
+    aux_pretrain: int = Field(0, ge=0, le=1_000_000, description="Steps of the auxiliary loss alone taken before the first Q update (aux_scale > 0): minibatches of the observations the replay holds at learning_starts, one Adam of their own at lr moving the reader and the auxiliary head, after which the target network is set to the pretrained one. The reader then starts Q-learning already trained to see the vehicles, rather than learning it alongside. Raise learning_starts with it, so that the replay holds enough maps for the steps (each step draws batch_size of them). 0, the default, is off.")
     aux_neighbours: int = Field(12, ge=1, le=64, description="Vehicles whose offsets, velocity differences, headings, kinds and crashed flags the auxiliary loss asks for (aux_scale > 0), nearest first.")
     explore_rule: float = Field(0.0, ge=0.0, le=1.0, description="Share of the exploratory actions (those ε-greedy plays instead of the greedy one) that the rule driver of evaluate --policy rule chooses instead of a uniform random action. Exploration guided toward the states a car follower reaches; one-step Q-learning, off-policy, still learns the greedy policy's values, while n-step returns (no off-policy correction) also follow the guide's later actions. 0, the default, is plain ε-greedy.")
 
@@ -77,6 +78,10 @@ class DQNConfig(Config):
     def _check(self) -> DQNConfig:
         if self.aux_joint and self.aux_scale == 0:
             raise ValueError("aux_joint shapes the auxiliary loss: it needs aux_scale > 0")
+        if self.aux_pretrain and self.aux_scale == 0:
+            raise ValueError("aux_pretrain takes steps of the auxiliary loss: it needs aux_scale > 0")
+        if self.aux_pretrain and self.learning_starts == 0:
+            raise ValueError("aux_pretrain trains on the maps stored before the first update: it needs learning_starts > 0")
         if self.eps_end > self.eps_start:
             raise ValueError(f"eps_end={self.eps_end} exceeds eps_start={self.eps_start}")
         ratio = Fraction(self.updates_per_transition).limit_denominator(MAX_RATIO_DENOMINATOR)

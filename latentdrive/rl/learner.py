@@ -84,6 +84,7 @@ class Learner:
         self.episodes = 0
         self.losses: list[float] = []
         self.learn_seconds = 0.0  # wall time in updates (for the benchmark)
+        self.progress = False  # a progress bar for long steps inside learn() (the pretraining)
         self.cache = FeatureCache(net, device, self.dtype)
         # dqn.aux_scale: targets of every stored observation, beside the store (rl.auxiliary).
         self.aux = (AuxLearning(net, d, cfg.observation, self.replay.store.capacity, device)
@@ -178,9 +179,23 @@ class Learner:
         """The updates the transitions collected so far are owed (``dqn.updates_per_transition``)."""
         t0 = time.perf_counter()
         owed = updates_owed(self.cfg.dqn, self.transitions) - self.updates
+        if owed > 0 and self.updates == 0 and self.aux is not None and self.cfg.dqn.aux_pretrain:
+            self.pretrain()
         for _ in range(max(0, owed)):
             self.update_step()
         self.learn_seconds += time.perf_counter() - t0
+
+    def pretrain(self) -> None:
+        """``dqn.aux_pretrain``: the reader's steps on the auxiliary loss alone, once, right
+        before the first update (so a resumed run repeats them only if its checkpoint came
+        before that), then the target network set to the pretrained reader, whose values
+        the first target copy would otherwise bring only ``target_update`` updates later."""
+        assert self.aux is not None
+        d = self.cfg.dqn
+        self.aux.pretrain_losses = self.aux.pretrain(
+            self.net, lambda: self.replay.sample_observations(self.rng, d.batch_size, self.device), d.aux_pretrain,
+            d.lr, d.adam_eps, self.dtype, self.progress)
+        self.target.load_state_dict(self.net.state_dict())
 
     def update_step(self) -> None:
         """One sampled minibatch, one gradient step, and the target update when it is due."""

@@ -232,6 +232,15 @@ class Replay:
             torch.from_numpy(self.steps[idx].astype(np.float32)).to(device), weight, idx,
         )
 
+    def sample_observations(self, rng: np.random.Generator, batch_size: int,
+                            device: torch.device | str = "cpu") -> tuple[torch.Tensor, NDArray[np.int64]]:
+        """The first observations of ``batch_size`` transitions drawn uniformly with
+        replacement, and their store ids ``(batch_size,)``; nothing else is read."""
+        if len(self) == 0:
+            raise ValueError("cannot sample from an empty replay")
+        ids = self.obs_id[rng.integers(0, len(self), size=batch_size)]
+        return _on(self.store.get(ids), device), ids
+
     def update_priorities(self, index: IntArray, td_error: NDArray[np.floating]) -> None:
         """New priorities ``(|td_error| + eps)^alpha`` of sampled slots ``index`` ``(B,)``."""
         if self.tree is None:

@@ -189,6 +189,7 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
     t0 = time.perf_counter()
     start_transitions = learner.transitions
     net.train()
+    learner.progress = progress
     while learner.transitions < cfg.steps:
         end = min(cfg.steps, (segment + 1) * cfg.segment)
         before = learner.transitions
@@ -214,6 +215,10 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
             # TensorBoard's train/aux_loss; metrics.csv keeps the columns every run has.
             row["aux_loss"] = float(np.mean(learner.aux.losses)) if learner.aux.losses else float("nan")
             learner.aux.losses.clear()
+            if learner.aux.pretrain_losses:
+                # dqn.aux_pretrain: the last hundred steps' mean, where the reader starts Q-learning.
+                row["aux_pretrain_loss"] = float(np.mean(learner.aux.pretrain_losses[-100:]))
+                learner.aux.pretrain_losses = []
         log.write(METRICS, row, "train")
         final = learner.transitions >= cfg.steps
         evaluated = final or bool(cfg.eval_every and (segment + 1) % cfg.eval_every == 0)

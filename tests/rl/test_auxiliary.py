@@ -3,6 +3,7 @@
 import copy
 import runpy
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -13,7 +14,7 @@ from latentdrive.config import ConfigError, ObservationConfig
 from latentdrive.models.vfan import QNetwork, VFANConfig
 from latentdrive.observe.state import view_target_size
 from latentdrive.rl.auxiliary import AuxLearning, aux_head, aux_step, gradient_share, scene_targets
-from latentdrive.rl.dqn import DQNConfig, td_targets, update
+from latentdrive.rl.dqn import DQNConfig, td_targets, update, updates_owed
 from latentdrive.rl.learner import Learner
 from latentdrive.rl.policy import build_network, load_policy_network
 from latentdrive.rl.replay import Batch
@@ -169,6 +170,52 @@ def test_the_learner_takes_the_step_its_config_names(tmp_path, tiny, monkeypatch
     result = train_policy(cfg, tmp_path / "run", progress=False, say=lambda _line: None)
     assert result["updates"] > 0
     assert calls == ({"separate": 0, "head": result["updates"]} if joint else {"separate": result["updates"], "head": 0})
+
+
+@pytest.mark.parametrize("joint", [False, True])
+def test_pretraining_fits_the_reader_once_before_the_first_update(tmp_path, tiny, monkeypatch, joint):
+    seen: list[dict[str, Any]] = []
+    pretrain, aux_pretrain = Learner.pretrain, AuxLearning.pretrain
+
+    def spied(self):
+        stem = [p.detach().clone() for p in self.net.body.get_submodule("stem").parameters()]
+        q_head = [p.detach().clone() for p in self.net.body.get_submodule("head").parameters()]
+        pretrain(self)
+        seen.append({
+            "updates": self.updates, "transitions": self.transitions,
+            "stem_moved": not all(torch.equal(a, b) for a, b in zip(stem, self.net.body.get_submodule("stem").parameters(), strict=True)),
+            "q_head_kept": all(torch.equal(a, b) for a, b in zip(q_head, self.net.body.get_submodule("head").parameters(), strict=True)),
+            "target_is_net": all(torch.equal(a, b) for a, b in zip(self.net.state_dict().values(),
+                                                                   self.target.state_dict().values(), strict=True)),
+        })
+
+    losses: list[list[float]] = []
+
+    def kept(self, *args, **kwargs):
+        out = aux_pretrain(self, *args, **kwargs)
+        losses.append(out)
+        return out
+
+    monkeypatch.setattr(Learner, "pretrain", spied)
+    monkeypatch.setattr(AuxLearning, "pretrain", kept)
+    cfg = tiny(mode="raw", steps=200, dqn={**AUX, "lr": 3e-3, "aux_joint": joint, "aux_pretrain": 60, "learning_starts": 100},
+               vfan={"reader": "attention", "hidden": 32})
+    result = train_policy(cfg, tmp_path / "run", progress=False, say=lambda _line: None)
+    assert len(seen) == 1 and len(losses) == 1
+    (at,) = seen
+    # Right before the first update, with the learning_starts maps stored, and not counted as updates.
+    assert at["updates"] == 0 and at["transitions"] >= 100
+    assert at["stem_moved"] and at["q_head_kept"] and at["target_is_net"]
+    assert len(losses[0]) == 60 and np.mean(losses[0][-10:]) < 0.7 * np.mean(losses[0][:10])
+    assert result["updates"] == updates_owed(cfg.dqn, result["transitions"])
+
+
+@pytest.mark.parametrize(("changes", "match"), [({"aux_pretrain": 10}, r"aux_pretrain.*aux_scale"),
+                                                 ({"aux_pretrain": 10, "aux_scale": 1.0, "learning_starts": 0},
+                                                  r"aux_pretrain.*learning_starts")])
+def test_pretraining_without_its_loss_or_its_maps_is_refused(changes, match):
+    with pytest.raises(ValueError, match=match):
+        DQNConfig(**changes)
 
 
 def test_joint_without_the_auxiliary_loss_is_refused():

@@ -152,8 +152,12 @@ LEARNER_OPTIONS = {"n_step": 3, "prioritized": True, "dueling": True, "tau": 0.0
 @pytest.mark.parametrize(("options", "vfan"), [({}, {}), (LEARNER_OPTIONS, {}), ({**LEARNER_OPTIONS, "augment_shift": 0}, {"reader": "attention"}),
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0}, {"reader": "attention"}),
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0, "aux_joint": True},
-                                                {"reader": "attention"})],
-                         ids=["defaults", "options", "attention-reader", "auxiliary-loss", "joint-auxiliary-loss"])
+                                                {"reader": "attention"}),
+                                               # The first checkpoint (100) comes before the pretraining (120).
+                                               ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0, "aux_pretrain": 5,
+                                                 "learning_starts": 120}, {"reader": "attention"})],
+                         ids=["defaults", "options", "attention-reader", "auxiliary-loss", "joint-auxiliary-loss",
+                              "pretrained-reader"])
 def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_path, tiny, monkeypatch, options, vfan):
     # The default buffer holds 100k transitions: saved whole, a raw replay takes 400 MB
     # at this tiny grid (1.6 GB at the default one) whatever the run's length.
