@@ -30,7 +30,7 @@ The head is used in training only: the policy reads the map and nothing else.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from typing import NamedTuple
 
 import numpy as np
@@ -143,21 +143,17 @@ class AuxLearning:
         self.pretrain_losses: list[float] = []  # dqn.aux_pretrain's, until the run's log takes them
         self._pending: Tensor | None = None
 
-    def pretrain(self, net: QNetwork, draw: Callable[[], tuple[Tensor, NDArray[np.int64]]], steps: int, lr: float,
-                 adam_eps: float, dtype: torch.dtype, progress: bool = False) -> list[float]:
-        """``steps`` :func:`aux_step` s of the reader and the head together on observations
-        ``draw()`` gives (a batch and its store ids), under an Adam of their own at ``lr``
-        that is dropped afterwards: no Q-loss is involved, so the scale is not. Returns the
-        losses."""
-        from tqdm import tqdm
-
+    def pretrain(self, net: QNetwork, batches: Iterable[tuple[Tensor, NDArray[np.int64]]], lr: float, adam_eps: float,
+                 dtype: torch.dtype) -> None:
+        """One :func:`aux_step` of the reader and the head together per batch of ``batches``
+        (observations and their store ids), under an Adam of their own at ``lr`` that is
+        dropped afterwards: there is no Q-loss to weigh against, so ``aux_scale`` plays no
+        part, and neither the Q-learner's moments nor the run's auxiliary ones see these
+        steps. Their losses go to :attr:`pretrain_losses`."""
         optimizer = torch.optim.Adam([*net.trainable_parameters(), *self.head.parameters()], lr=lr, eps=adam_eps)
-        out: list[float] = []
-        for _ in tqdm(range(steps), desc="pretrain reader", unit="step", leave=False, disable=not progress):
-            obs, ids = draw()
+        for obs, ids in batches:
             targets = torch.from_numpy(self.store.get(ids)).to(obs.device)
-            out.append(aux_step(net.summary, self.head, optimizer, obs, targets, dtype))
-        return out
+            self.pretrain_losses.append(aux_step(net.summary, self.head, optimizer, obs, targets, dtype))
 
     def targets(self, scenes: NDArray[np.object_]) -> NDArray[np.float32]:
         """:func:`scene_targets` of ``scenes`` ``(num_envs,)`` → ``(num_envs, n_av, n)``."""

@@ -69,7 +69,8 @@ class Learner:
     (:mod:`latentdrive.rl.imitate`); the target network is kept but never read.
     """
 
-    def __init__(self, cfg: PolicyTrainConfig, net: QNetwork, device: torch.device, n_slots: int) -> None:
+    def __init__(self, cfg: PolicyTrainConfig, net: QNetwork, device: torch.device, n_slots: int,
+                 progress: bool = False) -> None:
         self.cfg, self.net, self.device = cfg, net, device
         self.dtype = resolve_precision(cfg.precision, device)
         self.target = copy.deepcopy(net).requires_grad_(False)
@@ -84,7 +85,7 @@ class Learner:
         self.episodes = 0
         self.losses: list[float] = []
         self.learn_seconds = 0.0  # wall time in updates (for the benchmark)
-        self.progress = False  # a progress bar for long steps inside learn() (the pretraining)
+        self.progress = progress  # a progress bar for long steps inside learn() (the pretraining)
         self.cache = FeatureCache(net, device, self.dtype)
         # dqn.aux_scale: targets of every stored observation, beside the store (rl.auxiliary).
         self.aux = (AuxLearning(net, d, cfg.observation, self.replay.store.capacity, device)
@@ -176,9 +177,12 @@ class Learner:
             self.window = None
 
     def learn(self) -> None:
-        """The updates the transitions collected so far are owed (``dqn.updates_per_transition``)."""
+        """The updates the transitions collected so far are owed (``dqn.updates_per_transition``),
+        the first of them preceded by the reader's pretraining (``dqn.aux_pretrain``)."""
         t0 = time.perf_counter()
         owed = updates_owed(self.cfg.dqn, self.transitions) - self.updates
+        # updates travels in the checkpoint and the pretraining is followed by an update in
+        # this same call, so updates == 0 means "not pretrained yet", across resumes too.
         if owed > 0 and self.updates == 0 and self.aux is not None and self.cfg.dqn.aux_pretrain:
             self.pretrain()
         for _ in range(max(0, owed)):
@@ -188,13 +192,18 @@ class Learner:
     def pretrain(self) -> None:
         """``dqn.aux_pretrain``: the reader's steps on the auxiliary loss alone, once, right
         before the first update (so a resumed run repeats them only if its checkpoint came
-        before that), then the target network set to the pretrained reader, whose values
-        the first target copy would otherwise bring only ``target_update`` updates later."""
+        before that), then the target network set to the whole pretrained network: the
+        first targets are read by the pretrained reader, not by the random one a hard
+        copy (``target_update`` updates later) or Polyak's steps (``tau``) would replace
+        only gradually."""
+        from tqdm import tqdm
+
         assert self.aux is not None
         d = self.cfg.dqn
-        self.aux.pretrain_losses = self.aux.pretrain(
-            self.net, lambda: self.replay.sample_observations(self.rng, d.batch_size, self.device), d.aux_pretrain,
-            d.lr, d.adam_eps, self.dtype, self.progress)
+        batches = (self.replay.sample_observations(self.rng, d.batch_size, self.device)
+                   for _ in tqdm(range(d.aux_pretrain), desc="pretrain reader", unit="step", leave=False,
+                                 disable=not self.progress))
+        self.aux.pretrain(self.net, batches, d.lr, d.adam_eps, self.dtype)
         self.target.load_state_dict(self.net.state_dict())
 
     def update_step(self) -> None:

@@ -145,7 +145,7 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
                 raise ConfigError(f"--init-from {cfg.init_from}: its network's architecture differs from this run's") from None
         vec = make_vec(cfg.scenario_specs(), cfg.envs, backend=cfg.backend,
                        observation=cfg.observation.model_dump(), reward=cfg.reward.model_dump())
-        learner = Learner(cfg, net, device, cfg.envs * vec.n_av)
+        learner = Learner(cfg, net, device, cfg.envs * vec.n_av, progress=progress)
         # Everything a resumption reads is checked before anything is written.
         logs = read_logs(root) if resume else {}
         segment = learner.load(root) if resume else 0
@@ -189,7 +189,6 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
     t0 = time.perf_counter()
     start_transitions = learner.transitions
     net.train()
-    learner.progress = progress
     while learner.transitions < cfg.steps:
         end = min(cfg.steps, (segment + 1) * cfg.segment)
         before = learner.transitions
@@ -218,7 +217,7 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
             if learner.aux.pretrain_losses:
                 # dqn.aux_pretrain: the last hundred steps' mean, where the reader starts Q-learning.
                 row["aux_pretrain_loss"] = float(np.mean(learner.aux.pretrain_losses[-100:]))
-                learner.aux.pretrain_losses = []
+                learner.aux.pretrain_losses.clear()
         log.write(METRICS, row, "train")
         final = learner.transitions >= cfg.steps
         evaluated = final or bool(cfg.eval_every and (segment + 1) % cfg.eval_every == 0)

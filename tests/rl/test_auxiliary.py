@@ -175,44 +175,43 @@ def test_the_learner_takes_the_step_its_config_names(tmp_path, tiny, monkeypatch
 @pytest.mark.parametrize("joint", [False, True])
 def test_pretraining_fits_the_reader_once_before_the_first_update(tmp_path, tiny, monkeypatch, joint):
     seen: list[dict[str, Any]] = []
-    pretrain, aux_pretrain = Learner.pretrain, AuxLearning.pretrain
+    pretrain = Learner.pretrain
+
+    def moved(before: list[torch.Tensor], module: torch.nn.Module) -> list[bool]:
+        return [not torch.equal(a, b) for a, b in zip(before, module.parameters(), strict=True)]
 
     def spied(self):
-        stem = [p.detach().clone() for p in self.net.body.get_submodule("stem").parameters()]
-        q_head = [p.detach().clone() for p in self.net.body.get_submodule("head").parameters()]
+        modules = {"stem": self.net.body.get_submodule("stem"), "q_head": self.net.body.get_submodule("head"),
+                   "aux_head": self.aux.head}
+        before = {k: [p.detach().clone() for p in m.parameters()] for k, m in modules.items()}
         pretrain(self)
         seen.append({
-            "updates": self.updates, "transitions": self.transitions,
-            "stem_moved": not all(torch.equal(a, b) for a, b in zip(stem, self.net.body.get_submodule("stem").parameters(), strict=True)),
-            "q_head_kept": all(torch.equal(a, b) for a, b in zip(q_head, self.net.body.get_submodule("head").parameters(), strict=True)),
+            "updates": self.updates, "transitions": self.transitions, "losses": list(self.aux.pretrain_losses),
+            **{k: moved(before[k], m) for k, m in modules.items()},
+            # Its Adam is its own: neither the Q-learner's nor the run's auxiliary one has taken a step.
+            "optimizers_untouched": not self.optimizer.state and not self.aux.optimizer.state,
             "target_is_net": all(torch.equal(a, b) for a, b in zip(self.net.state_dict().values(),
                                                                    self.target.state_dict().values(), strict=True)),
         })
 
-    losses: list[list[float]] = []
-
-    def kept(self, *args, **kwargs):
-        out = aux_pretrain(self, *args, **kwargs)
-        losses.append(out)
-        return out
-
     monkeypatch.setattr(Learner, "pretrain", spied)
-    monkeypatch.setattr(AuxLearning, "pretrain", kept)
-    cfg = tiny(mode="raw", steps=200, dqn={**AUX, "lr": 3e-3, "aux_joint": joint, "aux_pretrain": 60, "learning_starts": 100},
-               vfan={"reader": "attention", "hidden": 32})
+    # aux_scale 0.25: a step at the run's auxiliary rate (aux_scale × lr) would be another step.
+    cfg = tiny(mode="raw", steps=200, dqn={**AUX, "aux_scale": 0.25, "lr": 3e-3, "aux_joint": joint, "aux_pretrain": 60,
+                                           "learning_starts": 100}, vfan={"reader": "attention", "hidden": 32})
     result = train_policy(cfg, tmp_path / "run", progress=False, say=lambda _line: None)
-    assert len(seen) == 1 and len(losses) == 1
     (at,) = seen
-    # Right before the first update, with the learning_starts maps stored, and not counted as updates.
-    assert at["updates"] == 0 and at["transitions"] >= 100
-    assert at["stem_moved"] and at["q_head_kept"] and at["target_is_net"]
-    assert len(losses[0]) == 60 and np.mean(losses[0][-10:]) < 0.7 * np.mean(losses[0][:10])
+    # Right before the first update, in the call that owes it, and not counted as updates.
+    assert at["updates"] == 0 and updates_owed(cfg.dqn, at["transitions"]) >= 1
+    assert all(at["stem"]) and all(at["aux_head"]) and not any(at["q_head"])
+    assert at["optimizers_untouched"] and at["target_is_net"]
+    losses = at["losses"]
+    assert len(losses) == 60 and np.mean(losses[-10:]) < 0.7 * np.mean(losses[:10])
     assert result["updates"] == updates_owed(cfg.dqn, result["transitions"])
 
 
 @pytest.mark.parametrize(("changes", "match"), [({"aux_pretrain": 10}, r"aux_pretrain.*aux_scale"),
-                                                 ({"aux_pretrain": 10, "aux_scale": 1.0, "learning_starts": 0},
-                                                  r"aux_pretrain.*learning_starts")])
+                                                 ({"aux_pretrain": 10, "aux_scale": 1.0, "learning_starts": 31},
+                                                  r"aux_pretrain.*learning_starts ≥ batch_size \(32\), got 31")])
 def test_pretraining_without_its_loss_or_its_maps_is_refused(changes, match):
     with pytest.raises(ValueError, match=match):
         DQNConfig(**changes)

@@ -169,6 +169,19 @@ def test_a_replay_saves_its_filled_slots_and_restores_exactly(make, n):
                 np.testing.assert_array_equal(getattr(target.store, name), getattr(replay.store, name))
 
 
+def test_sampled_observations_are_the_stored_transitions_first_ones():
+    store = LatentStore(20, (3,))
+    replay = Replay(8, store)
+    with pytest.raises(ValueError, match="empty"):
+        replay.sample_observations(np.random.default_rng(0), 4)
+    ids = store.add(np.arange(30, dtype=np.float32).reshape(10, 3), np.full(10, -1))
+    # Five transitions, 0..4 → 5..9: their next observations and the unfilled slots are never drawn.
+    replay.add(ids[:5], np.zeros(5, np.int64), np.zeros(5, np.float32), ids[5:], np.zeros(5, bool))
+    obs, drawn = replay.sample_observations(np.random.default_rng(0), 200)
+    assert obs.shape == (200, 3) and set(drawn.tolist()) == set(ids[:5].tolist())
+    np.testing.assert_array_equal(obs.numpy(), store.get(drawn))
+
+
 def test_a_replay_that_does_not_fit_is_refused_and_changes_nothing():
     replay = _filled_replay(FrameStore(12, (4, 2, 4, 4)), 5)
     target = _filled_replay(FrameStore(12, (4, 2, 4, 4)), 3, seed=1)

@@ -153,11 +153,13 @@ LEARNER_OPTIONS = {"n_step": 3, "prioritized": True, "dueling": True, "tau": 0.0
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0}, {"reader": "attention"}),
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0, "aux_joint": True},
                                                 {"reader": "attention"}),
-                                               # The first checkpoint (100) comes before the pretraining (120).
+                                               # The first checkpoint (at about 100) before the pretraining (120), then after it (50).
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0, "aux_pretrain": 5,
-                                                 "learning_starts": 120}, {"reader": "attention"})],
+                                                 "learning_starts": 120}, {"reader": "attention"}),
+                                               ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0, "aux_pretrain": 5,
+                                                 "learning_starts": 50}, {"reader": "attention"})],
                          ids=["defaults", "options", "attention-reader", "auxiliary-loss", "joint-auxiliary-loss",
-                              "pretrained-reader"])
+                              "resumed-before-pretraining", "resumed-after-pretraining"])
 def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_path, tiny, monkeypatch, options, vfan):
     # The default buffer holds 100k transitions: saved whole, a raw replay takes 400 MB
     # at this tiny grid (1.6 GB at the default one) whatever the run's length.
@@ -182,6 +184,9 @@ def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_p
     # checkpoint, and the n-step returns are stored with their horizons.
     extra = read_checkpoint(tmp_path / "r" / CHECKPOINT)[1]["extra"]
     assert extra["replay_added"] == extra["transitions"] > 0
+    if options.get("aux_pretrain"):
+        # The checkpoint the run resumes from comes before the pretraining or after it, as the case says.
+        assert (extra["updates"] == 0) == (options["learning_starts"] > extra["transitions"])
     steps = load_file(str(replay))["replay/steps"]
     assert set(np.unique(steps)) <= set(range(1, cfg.dqn.n_step + 1))
     assert (steps.max() == 3) == bool(options)
