@@ -152,8 +152,11 @@ class AuxLearning:
         steps. Their losses go to :attr:`pretrain_losses`."""
         optimizer = torch.optim.Adam([*net.trainable_parameters(), *self.head.parameters()], lr=lr, eps=adam_eps)
         for obs, ids in batches:
-            targets = torch.from_numpy(self.store.get(ids)).to(obs.device)
-            self.pretrain_losses.append(aux_step(net.summary, self.head, optimizer, obs, targets, dtype))
+            self.pretrain_losses.append(aux_step(net.summary, self.head, optimizer, obs, self.stored(ids, obs.device), dtype))
+
+    def stored(self, ids: NDArray[np.int64], device: torch.device) -> Tensor:
+        """The stored targets ``(len(ids), n)`` of the observations whose ids are ``ids``."""
+        return torch.from_numpy(self.store.get(ids)).to(device)
 
     def targets(self, scenes: NDArray[np.object_]) -> NDArray[np.float32]:
         """:func:`scene_targets` of ``scenes`` ``(num_envs,)`` → ``(num_envs, n_av, n)``."""
@@ -168,8 +171,7 @@ class AuxLearning:
 
     def step(self, net: QNetwork, obs: Tensor, ids: NDArray[np.int64], dtype: torch.dtype) -> None:
         """One :func:`aux_step` on sampled observations ``obs`` whose ids are ``ids``."""
-        targets = torch.from_numpy(self.store.get(ids)).to(obs.device)
-        self.losses.append(aux_step(net.summary, self.head, self.optimizer, obs, targets, dtype))
+        self.losses.append(aux_step(net.summary, self.head, self.optimizer, obs, self.stored(ids, obs.device), dtype))
 
     def joint_term(self, ids: NDArray[np.int64], device: torch.device, dtype: torch.dtype) -> Callable[[Tensor], Tensor]:
         """The term :func:`~latentdrive.rl.dqn.update` adds to its Q-loss (``aux_joint``)
@@ -177,7 +179,7 @@ class AuxLearning:
         error of the head's prediction from the summary ``z`` ``(B, summary_size)`` against
         their targets (forward in ``dtype``, loss in fp32). Clears the head's gradients now;
         :meth:`step_head` steps it after the backward pass."""
-        targets = torch.from_numpy(self.store.get(ids)).to(device)
+        targets = self.stored(ids, device)
         self.optimizer.zero_grad(set_to_none=True)
 
         def term(z: Tensor) -> Tensor:
