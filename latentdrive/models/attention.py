@@ -5,7 +5,7 @@ its own weights in the fully connected layer: what it learns of a car at one pla
 carry to a car at another. A Q-network that reads exact states generalizes across vehicles
 when it reads them as a set (ego-attention over the neighbours; Leurent and Mercat, "Social
 attention for autonomous decision-making in dense traffic", 2019), and not with an MLP that
-gives each neighbour's rank its own weights (``scripts/state_dqn.py``; docs/learning.md). This
+gives each neighbour's rank its own weights (``scripts/state_dqn.py``; docs/readers.md). This
 reader applies the same idea to the map's cells:
 
 - a convolutional stem over the frames stacked as channels, ``(C·T, H, W)``, down to a grid

@@ -2,7 +2,7 @@
 
 The Q-loss alone teaches the attention reader little of where the other vehicles are: a
 reader fed the same map learns to drive far better when it is also asked to say, from
-the map, what the map shows (docs/learning.md, "The attention reader told its place, or
+the map, what the map shows (docs/readers.md, "The attention reader told its place, or
 taught to see the vehicles"). The targets are exact values read from the Scene each
 observation was rendered from (:func:`latentdrive.observe.state.view_targets`): the AV's
 speed and lane speed and its ``aux_neighbours`` nearest vehicles inside its map's view,
