@@ -195,6 +195,11 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             doc["causes"] = {name: cause_counts(o) for name, o in outcomes.items()}
         if comparison is not None:
             doc["compare"] = {"a": runs[0], "b": args.compare, "tests": comparison}
+        from latentdrive.evaluate.episodes import episode_columns, specs_digest
+
+        # Per-episode outcomes let `latentdrive compare` pair this file with another later.
+        doc["episodes"] = {"specs": specs_digest(eval_set.specs),
+                           "policies": {name: episode_columns(o) for name, o in outcomes.items()}}
         print(f"wrote {write_json(args.json, doc)}")
     if args.gif:
         if runs:
@@ -205,6 +210,24 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             path = save_policy_gif(args.gif, None, makers[references[0]], scenarios[0], eval_set,
                                    f"{references[0]} on {scenarios[0]}", device)
         print(f"wrote {path}")
+    return 0
+
+
+def _cmd_compare(args: argparse.Namespace) -> int:
+    from latentdrive.evaluate.episodes import pair, read_evaluation
+    from latentdrive.evaluate.report import format_compare
+    from latentdrive.experiments.policy import write_json
+
+    if args.json and (problem := output_problem(args.json)):
+        raise ConfigError(f"--json {args.json}: {problem}")
+    a, b = read_evaluation(args.a_file), read_evaluation(args.b_file)
+    na, nb, tests = pair(a, b, args.a or None, args.b or None)
+    print(f"paired on the same episodes: A = {na} ({a.path}), B = {nb} ({b.path})")
+    print(format_compare(tests, names=("A", "B")))
+    if args.json:
+        doc = {"a": {"file": a.path, "policy": na}, "b": {"file": b.path, "policy": nb}, "evaluation": a.evaluation,
+               "tests": {scope: {k: t.as_dict() for k, t in by.items()} for scope, by in tests.items()}}
+        print(f"wrote {write_json(args.json, doc)}")
     return 0
 
 
@@ -326,6 +349,18 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("files", nargs="+", metavar="EVAL_JSON", help="`latentdrive evaluate ... --json FILE` results, one per seed")
     s.add_argument("--json", default="", help="also write the aggregate to this JSON file")
     s.set_defaults(func=_cmd_aggregate)
+
+    s = sub.add_parser("compare", help="paired tests of two stored evaluations, without playing the episodes again",
+                       description="Pair a policy of one `evaluate --json` result with a policy of another on the "
+                       "same episodes: per scenario and mixed, both failure and crash rates, the paired difference "
+                       "with its 95% interval and McNemar's exact p. The files must score the same evaluation set "
+                       "on the same scenario specs.")
+    s.add_argument("a_file", metavar="A.json", help="`latentdrive evaluate ... --json FILE` result holding policy A")
+    s.add_argument("b_file", metavar="B.json", help="the result holding policy B (may be A.json again)")
+    s.add_argument("--a", default="", metavar="POLICY", help="policy A in A.json (default: its run, else its first reference)")
+    s.add_argument("--b", default="", metavar="POLICY", help="policy B in B.json (default: its run, else its first reference)")
+    s.add_argument("--json", default="", help="also write the tests to this JSON file")
+    s.set_defaults(func=_cmd_compare)
 
     s = sub.add_parser("curve", help="learning curves: held-out failure rate against agent-transitions and minutes",
                        description="Draw the periodic held-out evaluations of policy runs (their eval.csv; train "

@@ -220,6 +220,43 @@ def test_compare_with_a_reference_policy(tmp_path, capsys, raw_run):
     assert doc["compare"]["tests"]["mixed"]["failed"]["rate_b"] == 1.0
 
 
+def test_compare_pairs_stored_evaluations_as_evaluate_compare_does(tmp_path, capsys, raw_run):
+    both, run_only, stop_only = tmp_path / "both.json", tmp_path / "run.json", tmp_path / "stop.json"
+    common = ["--episodes", "4", "--envs", "2", "-q"]
+    assert main(["evaluate", str(raw_run), "--compare", "stop", "--policy", "none", "--json", str(both), *common]) == 0
+    assert main(["evaluate", str(raw_run), "--policy", "none", "--json", str(run_only), *common]) == 0
+    assert main(["evaluate", "--policy", "stop", "--scenarios", "intersection", "--json", str(stop_only), *common]) == 0
+    online = json.loads(both.read_text())["compare"]["tests"]
+    capsys.readouterr()
+    out = tmp_path / "pair.json"
+    # Two files, each with one policy: the run's file against the reference's.
+    assert main(["compare", str(run_only), str(stop_only), "--json", str(out)]) == 0
+    printed = capsys.readouterr().out
+    assert f"A = {raw_run} ({run_only}), B = stop ({stop_only})" in printed and "McNemar" in printed
+    assert json.loads(out.read_text())["tests"] == online
+    # One file, two of its policies.
+    assert main(["compare", str(both), str(both), "--b", "stop", "--json", str(out)]) == 0
+    assert json.loads(out.read_text())["tests"] == online
+
+
+def test_compare_refuses_files_of_other_episodes_in_one_line(tmp_path, capsys, raw_run):
+    four, two = tmp_path / "four.json", tmp_path / "two.json"
+    assert main(["evaluate", "--policy", "stop", "--scenarios", "intersection", "--episodes", "4", "--envs", "2",
+                 "--json", str(four), "-q"]) == 0
+    assert main(["evaluate", "--policy", "stop", "--scenarios", "intersection", "--episodes", "2", "--envs", "2",
+                 "--json", str(two), "-q"]) == 0
+    capsys.readouterr()
+    _fails(capsys, ["compare", str(four), str(two), "--json", str(tmp_path / "p.json")],
+           "different evaluation sets (episodes_per_scenario: 4 against 2)", tmp_path)
+    _fails(capsys, ["compare", str(four), str(four), "--b", "rule"], "no per-episode outcomes of policy 'rule'", tmp_path)
+    doc = json.loads(four.read_text())
+    del doc["episodes"]
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps(doc))
+    _fails(capsys, ["compare", str(old), str(four)], "holds no per-episode outcomes", tmp_path)
+    _fails(capsys, ["compare", str(four), str(tmp_path / "absent.json")], "absent.json", tmp_path)
+
+
 def test_bad_evaluation_options_fail_before_any_work(tmp_path, capsys, raw_run):
     _fails(capsys, ["evaluate", str(raw_run), "--seed-offset", "-1", "--episodes", "2"], "offset", tmp_path)
     _fails(capsys, ["evaluate", str(raw_run), "--json", str(tmp_path), "--episodes", "2"], "--json", tmp_path)
