@@ -1,20 +1,26 @@
 """Per-episode outcomes in an ``evaluate --json`` file, and paired tests between two files.
 
-``latentdrive evaluate ... --json FILE`` stores, for every policy it played, which episodes
-it failed and which it crashed, each episode named by its scenario, reset seed, environment
-slot and index in that slot (:func:`episode_columns`). ``latentdrive compare A.json B.json``
-then pairs a policy of one file with a policy of another on the same episodes (McNemar's
-exact test and the paired difference, :func:`latentdrive.evaluate.report.compare`) without
-playing them again (:func:`pair`). Two files pair only if they scored the same evaluation
-set (scenarios, episodes per scenario, environments, backend, reset seed) on the same
-scenario specs (:func:`specs_digest`); otherwise a one-line error names what differs. Each
-policy played the episodes through its own map, as with ``evaluate --compare``.
+``latentdrive evaluate ... --json FILE`` stores, under ``"outcomes"``, which episodes each
+policy it played failed and crashed (:func:`outcome_block`): the episodes once per scenario,
+each named ``"SEED/ENV/EPISODE"`` (its reset seed, environment slot and index in that slot),
+sorted, and for each policy a string of 0s and 1s per scenario aligned with them.
+``latentdrive compare A.json B.json`` then pairs a policy of one file with a policy of
+another on the same episodes (McNemar's exact test and the paired difference,
+:func:`latentdrive.evaluate.report.compare`) without playing them again (:func:`pair`).
+
+Two files pair only if they scored the same evaluation set (the scenarios, in any order,
+episodes per scenario, environments, backend, reset seed) on the same scenario specs
+(:func:`specs_digest`), and hold the same episodes; otherwise a one-line error names what
+differs. Each policy played the episodes through its own map, as with ``evaluate
+--compare``. What no check can see: files written by versions of the simulator that play
+the same seeds differently.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
+import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,30 +28,45 @@ from typing import Any
 
 from latentdrive.config import ConfigError
 from latentdrive.evaluate.report import EpisodeResult, compare
+from latentdrive.evaluate.seeds import evaluation_set
 from latentdrive.evaluate.stats import PairedTest
 from latentdrive.fileio import read_json
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.scenarios import ScenarioSpec
 
-__all__ = ["StoredEvaluation", "episode_columns", "pair", "read_evaluation", "specs_digest"]
+__all__ = ["EPISODE_FIELDS", "StoredEvaluation", "outcome_block", "pair", "read_evaluation", "specs_digest"]
 
-#: The fields of :meth:`EvaluationSet.as_dict` that name the episodes played; the planner's
-#: settings only describe the ``plan`` reference.
+#: The fields of an evaluation set (``EvaluationSet.as_dict``) that name the episodes played;
+#: the planner's settings describe only the ``plan`` reference.
 EPISODE_FIELDS = ("scenarios", "episodes_per_scenario", "envs", "backend", "reset_seed", "seed_offset")
-_COLUMNS = ("scenario", "seed", "env", "episode", "failed", "crashed")
+_KEY = re.compile(r"(0|[1-9][0-9]{0,18})/(0|[1-9][0-9]{0,5})/(0|[1-9][0-9]{0,9})")
+_FLAGS = re.compile(r"[01]*")
 
 
-def episode_columns(outcomes: Sequence[EpisodeOutcome]) -> dict[str, list[Any]]:
-    """One policy's outcomes as JSON columns: ``scenario``, ``seed``, ``env``, ``episode``
-    (which episode) and ``failed``, ``crashed`` (0/1), one entry per episode."""
-    return {
-        "scenario": [o.scenario for o in outcomes],
-        "seed": [int(o.seed) for o in outcomes],
-        "env": [int(o.env_index) for o in outcomes],
-        "episode": [int(o.episode_index) for o in outcomes],
-        "failed": [int(o.failed) for o in outcomes],
-        "crashed": [int(o.crashed) for o in outcomes],
-    }
+def _key(o: EpisodeOutcome) -> tuple[int, int, int]:
+    return int(o.seed), int(o.env_index), int(o.episode_index)
+
+
+def outcome_block(outcomes: Mapping[str, Sequence[EpisodeOutcome]], specs: Mapping[str, ScenarioSpec]) -> dict[str, Any]:
+    """The ``"outcomes"`` block of ``evaluate --json`` for every policy's outcomes (all on
+    the same episodes, as :func:`~latentdrive.experiments.policy.evaluate_many` plays them):
+    ``{"specs": DIGEST, "episodes": {SCENARIO: ["SEED/ENV/EPISODE", ...]}, "failed":
+    {POLICY: {SCENARIO: "0110..."}}, "crashed": {...}}``."""
+    keys: dict[str, list[tuple[int, int, int]]] = {}
+    failed: dict[str, dict[str, str]] = {}
+    crashed: dict[str, dict[str, str]] = {}
+    for name, outs in outcomes.items():
+        by: dict[str, dict[tuple[int, int, int], EpisodeOutcome]] = {}
+        for o in outs:
+            by.setdefault(o.scenario, {})[_key(o)] = o
+        for scenario, episodes in by.items():
+            order = keys.setdefault(scenario, sorted(episodes))
+            if sorted(episodes) != order:
+                raise RuntimeError(f"{name} played other {scenario} episodes than the first policy")
+            failed.setdefault(name, {})[scenario] = "".join("1" if episodes[k].failed else "0" for k in order)
+            crashed.setdefault(name, {})[scenario] = "".join("1" if episodes[k].crashed else "0" for k in order)
+    return {"specs": specs_digest(specs), "episodes": {s: [f"{a}/{b}/{c}" for a, b, c in ks] for s, ks in keys.items()},
+            "failed": failed, "crashed": crashed}
 
 
 def specs_digest(specs: Mapping[str, ScenarioSpec]) -> str:
@@ -60,7 +81,7 @@ class StoredEvaluation:
     """What :func:`pair` needs of one ``evaluate --json`` file."""
 
     path: str
-    #: The evaluation set's :data:`EPISODE_FIELDS`.
+    #: The whole evaluation set the file records (:data:`EPISODE_FIELDS` and more).
     evaluation: dict[str, Any]
     specs: str
     #: The file's first policy (its run, else its first reference).
@@ -68,23 +89,22 @@ class StoredEvaluation:
     episodes: dict[str, list[EpisodeResult]]
 
 
-def _int(x: object) -> bool:
-    return isinstance(x, int) and not isinstance(x, bool)
-
-
-def _results(path: str, name: str, cols: object) -> list[EpisodeResult]:
-    bad = f"{path}: the per-episode outcomes of {name!r} are malformed"
-    if not isinstance(cols, dict) or set(cols) != set(_COLUMNS) or not all(isinstance(cols[c], list) for c in _COLUMNS):
-        raise ConfigError(f"{bad} (columns {', '.join(_COLUMNS)} expected)")
-    n = len(cols["scenario"])
-    if any(len(cols[c]) != n for c in _COLUMNS):
-        raise ConfigError(f"{bad} (columns of different lengths)")
-    if not all(isinstance(s, str) for s in cols["scenario"]) or \
-            not all(_int(v) for c in ("seed", "env", "episode") for v in cols[c]) or \
-            not all(v in (0, 1) and _int(v) for c in ("failed", "crashed") for v in cols[c]):
-        raise ConfigError(f"{bad} (a scenario that is not a name, or an entry that is not an integer or 0/1)")
-    return [EpisodeResult(s, seed, env, ep, bool(f), bool(c))
-            for s, seed, env, ep, f, c in zip(*(cols[k] for k in _COLUMNS), strict=True)]
+def _policies(where: str, block: dict[str, Any], keys: dict[str, list[tuple[int, int, int]]]) -> dict[str, list[EpisodeResult]]:
+    failed, crashed = block.get("failed"), block.get("crashed")
+    if not isinstance(failed, dict) or not isinstance(crashed, dict) or not failed or set(failed) != set(crashed):
+        raise ConfigError(f"{where}: the per-episode outcomes are malformed (failed and crashed of the same policies expected)")
+    out: dict[str, list[EpisodeResult]] = {}
+    for name in failed:
+        f, c = failed[name], crashed[name]
+        ok = isinstance(f, dict) and isinstance(c, dict) and set(f) == set(c) == set(keys) and all(
+            isinstance(f[s], str) and isinstance(c[s], str) and _FLAGS.fullmatch(f[s]) and _FLAGS.fullmatch(c[s])
+            and len(f[s]) == len(c[s]) == len(keys[s]) for s in keys)
+        if not ok:
+            raise ConfigError(f"{where}: the per-episode outcomes of {name!r} are malformed (a string of 0s and 1s "
+                              "per scenario, one per episode, expected)")
+        out[name] = [EpisodeResult(s, seed, env, ep, f[s][i] == "1", c[s][i] == "1")
+                     for s in keys for i, (seed, env, ep) in enumerate(keys[s])]
+    return out
 
 
 def read_evaluation(path: str | Path) -> StoredEvaluation:
@@ -92,21 +112,31 @@ def read_evaluation(path: str | Path) -> StoredEvaluation:
     :class:`ConfigError` naming the file if it is not such a file or holds none."""
     where = str(path)
     doc = read_json(path, what="evaluation", error=ConfigError)
-    evaluation = doc.get("config", {}).get("evaluation") if isinstance(doc, dict) and isinstance(doc.get("config"), dict) else None
-    if not isinstance(evaluation, dict) or any(k not in evaluation for k in EPISODE_FIELDS):
-        raise ConfigError(f"{where}: not a `latentdrive evaluate --json` result (no evaluation set)")
-    block = doc.get("episodes")
+    evaluation = evaluation_set(doc, path)
+    missing = [k for k in EPISODE_FIELDS if k not in evaluation]
+    if missing:
+        raise ConfigError(f"{where}: not a `latentdrive evaluate --json` result (its evaluation set lacks {missing[0]})")
+    block = doc.get("outcomes")
     if block is None:
         raise ConfigError(f"{where}: holds no per-episode outcomes (written before `evaluate --json` stored them); "
                           "evaluate again with --json")
-    if not isinstance(block, dict) or not isinstance(block.get("specs"), str) or not isinstance(block.get("policies"), dict) \
-            or not block["policies"]:
-        raise ConfigError(f"{where}: the per-episode outcomes are malformed (specs and policies expected)")
+    episodes = block.get("episodes") if isinstance(block, dict) else None
+    if not isinstance(block, dict) or not isinstance(block.get("specs"), str) or not isinstance(episodes, dict) \
+            or set(episodes) != set(evaluation["scenarios"]):
+        raise ConfigError(f"{where}: the per-episode outcomes are malformed (specs and the episodes of every "
+                          "scenario expected)")
+    keys: dict[str, list[tuple[int, int, int]]] = {}
+    for s, names in episodes.items():
+        matches = [_KEY.fullmatch(n) if isinstance(n, str) else None for n in names] if isinstance(names, list) else [None]
+        if not all(matches) or len(set(names)) != len(names):
+            raise ConfigError(f"{where}: the per-episode outcomes name the {s} episodes wrongly "
+                              "(distinct SEED/ENV/EPISODE expected)")
+        keys[s] = [(int(m.group(1)), int(m.group(2)), int(m.group(3))) for m in matches if m]
     head = doc.get("policy")
-    if not isinstance(head, str) or head not in block["policies"]:
+    policies = _policies(where, block, keys)
+    if not isinstance(head, str) or head not in policies:
         raise ConfigError(f"{where}: its policy {head!r} has no per-episode outcomes")
-    episodes = {str(name): _results(where, str(name), cols) for name, cols in block["policies"].items()}
-    return StoredEvaluation(where, {k: evaluation[k] for k in EPISODE_FIELDS}, block["specs"], head, episodes)
+    return StoredEvaluation(where, evaluation, block["specs"], head, policies)
 
 
 def _policy(ev: StoredEvaluation, name: str | None) -> str:
@@ -116,17 +146,26 @@ def _policy(ev: StoredEvaluation, name: str | None) -> str:
     return name
 
 
+def _episode_fields(ev: StoredEvaluation) -> dict[str, Any]:
+    # The order of --scenarios does not change the episodes: each scenario's start from
+    # the same reset seed whatever its place.
+    return {**{k: ev.evaluation[k] for k in EPISODE_FIELDS}, "scenarios": sorted(ev.evaluation["scenarios"])}
+
+
 def pair(a: StoredEvaluation, b: StoredEvaluation, policy_a: str | None = None,
          policy_b: str | None = None) -> tuple[str, str, dict[str, dict[str, PairedTest]]]:
     """Policy ``policy_a`` of ``a`` (default: its head policy) against ``policy_b`` of ``b``
     on the same episodes: their names and :func:`compare`'s tests per scenario and mixed.
-    :class:`ConfigError` if the files scored other episodes or other specs."""
+    :class:`ConfigError` if the files scored other episodes or other specs, or if both sides
+    are one policy of one file."""
     na, nb = _policy(a, policy_a), _policy(b, policy_b)
-    differ = [k for k in EPISODE_FIELDS if a.evaluation[k] != b.evaluation[k]]
+    if na == nb and Path(a.path).resolve() == Path(b.path).resolve():
+        raise ConfigError(f"{a.path}: policy {na!r} against itself; name another with --a or --b")
+    fa, fb = _episode_fields(a), _episode_fields(b)
+    differ = [k for k in EPISODE_FIELDS if fa[k] != fb[k]]
     if differ:
         k = differ[0]
-        raise ConfigError(f"{a.path} and {b.path} scored different evaluation sets ({k}: "
-                          f"{a.evaluation[k]!r} against {b.evaluation[k]!r})")
+        raise ConfigError(f"{a.path} and {b.path} scored different evaluation sets ({k}: {fa[k]!r} against {fb[k]!r})")
     if a.specs != b.specs:
         raise ConfigError(f"{a.path} and {b.path} played different scenario specs under the same names")
     try:

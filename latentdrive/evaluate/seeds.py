@@ -23,7 +23,7 @@ from latentdrive.evaluate.policies import REFERENCE_POLICIES
 from latentdrive.evaluate.report import render_table
 from latentdrive.fileio import read_json
 
-__all__ = ["SeedEval", "aggregate_seeds", "format_seeds", "read_seed_eval"]
+__all__ = ["SeedEval", "aggregate_seeds", "evaluation_set", "format_seeds", "read_seed_eval"]
 
 MIXED = "mixed"
 
@@ -59,13 +59,22 @@ def _number(x: object) -> bool:
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
-def read_seed_eval(path: str | Path) -> SeedEval:
-    """Read one ``evaluate --json`` file; :class:`ConfigError` naming it if it is not one."""
-    doc = read_json(path, what="evaluation")
+def evaluation_set(doc: object, path: str | Path) -> dict[str, Any]:
+    """The evaluation set of an ``evaluate --json`` document (``config.evaluation``, its
+    scenarios a list of distinct names); :class:`ConfigError` naming ``path`` if it has none."""
     ev = _at(doc, "config", "evaluation")
     scenarios = _at(ev, "scenarios")
     _need(isinstance(scenarios, list) and bool(scenarios) and all(isinstance(s, str) for s in scenarios)
           and len(set(scenarios)) == len(scenarios) and MIXED not in scenarios, path, "no evaluation set")
+    assert isinstance(ev, dict)
+    return ev
+
+
+def read_seed_eval(path: str | Path) -> SeedEval:
+    """Read one ``evaluate --json`` file; :class:`ConfigError` naming it if it is not one."""
+    doc = read_json(path, what="evaluation")
+    ev = evaluation_set(doc, path)
+    scenarios = ev["scenarios"]
     names = [*scenarios, MIXED]
     failure: dict[str, float] = {}
     for name in names:

@@ -1,4 +1,5 @@
-"""``latentdrive train-policy``, ``latentdrive evaluate``, ``latentdrive aggregate`` and ``latentdrive curve``."""
+"""``latentdrive train-policy``, ``latentdrive evaluate``, ``latentdrive aggregate``, ``latentdrive compare`` and
+``latentdrive curve``."""
 
 from __future__ import annotations
 
@@ -195,11 +196,10 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
             doc["causes"] = {name: cause_counts(o) for name, o in outcomes.items()}
         if comparison is not None:
             doc["compare"] = {"a": runs[0], "b": args.compare, "tests": comparison}
-        from latentdrive.evaluate.episodes import episode_columns, specs_digest
+        from latentdrive.evaluate.episodes import outcome_block
 
         # Per-episode outcomes let `latentdrive compare` pair this file with another later.
-        doc["episodes"] = {"specs": specs_digest(eval_set.specs),
-                           "policies": {name: episode_columns(o) for name, o in outcomes.items()}}
+        doc["outcomes"] = outcome_block(outcomes, eval_set.specs)
         print(f"wrote {write_json(args.json, doc)}")
     if args.gif:
         if runs:
@@ -218,14 +218,14 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     from latentdrive.evaluate.report import format_compare
     from latentdrive.experiments.policy import write_json
 
-    if args.json and (problem := output_problem(args.json)):
-        raise ConfigError(f"--json {args.json}: {problem}")
+    _check_output(args.json, [args.a_file, args.b_file])
     a, b = read_evaluation(args.a_file), read_evaluation(args.b_file)
     na, nb, tests = pair(a, b, args.a or None, args.b or None)
     print(f"paired on the same episodes: A = {na} ({a.path}), B = {nb} ({b.path})")
     print(format_compare(tests, names=("A", "B")))
     if args.json:
-        doc = {"a": {"file": a.path, "policy": na}, "b": {"file": b.path, "policy": nb}, "evaluation": a.evaluation,
+        doc = {"a": {"file": a.path, "policy": na, "evaluation": a.evaluation},
+               "b": {"file": b.path, "policy": nb, "evaluation": b.evaluation},
                "tests": {scope: {k: t.as_dict() for k, t in by.items()} for scope, by in tests.items()}}
         print(f"wrote {write_json(args.json, doc)}")
     return 0
@@ -241,12 +241,21 @@ def _labelled(arg: str) -> tuple[str | None, str]:
     return label, run
 
 
+def _check_output(out: str, inputs: list[str]) -> None:
+    """Refuse a ``--json`` output that cannot be written or would overwrite an input."""
+    if not out:
+        return
+    if problem := output_problem(out):
+        raise ConfigError(f"--json {out}: {problem}")
+    if any(Path(out).resolve() == Path(f).resolve() for f in inputs):
+        raise ConfigError(f"--json {out}: is one of the files read; write the result elsewhere")
+
+
 def _cmd_aggregate(args: argparse.Namespace) -> int:
     from latentdrive.evaluate.seeds import aggregate_seeds, format_seeds, read_seed_eval
     from latentdrive.experiments.policy import write_json
 
-    if args.json and (problem := output_problem(args.json)):
-        raise ConfigError(f"--json {args.json}: {problem}")
+    _check_output(args.json, args.files)
     agg = aggregate_seeds([read_seed_eval(f) for f in args.files])
     print(format_seeds(agg))
     if args.json:

@@ -8,7 +8,7 @@ import re
 import pytest
 
 from latentdrive.config import ConfigError
-from latentdrive.evaluate.episodes import episode_columns, pair, read_evaluation, specs_digest
+from latentdrive.evaluate.episodes import outcome_block, pair, read_evaluation, specs_digest
 from latentdrive.evaluate.report import compare
 from latentdrive.scenarios import get_spec
 
@@ -27,9 +27,14 @@ def _policy_b():
         [outcome("success", "exit", s) for s in range(3, 6)]
 
 
-def _file(path, policies, *, evaluation=None, specs="abc", head=None):
-    doc = {"policy": head or next(iter(policies)), "config": {"evaluation": evaluation or EVALUATION},
-           "episodes": {"specs": specs, "policies": {k: episode_columns(v) for k, v in policies.items()}}}
+SPECS = {"merge": get_spec("merge"), "exit": get_spec("exit")}
+
+
+def _file(path, policies, *, evaluation=None, specs=None, head=None):
+    block = outcome_block(policies, SPECS)
+    if specs is not None:
+        block["specs"] = specs
+    doc = {"policy": head or next(iter(policies)), "config": {"evaluation": evaluation or EVALUATION}, "outcomes": block}
     path.write_text(json.dumps(doc))
     return path
 
@@ -38,10 +43,18 @@ def _tests_as_dicts(tests):
     return {s: {k: t.as_dict() for k, t in by.items()} for s, by in tests.items()}
 
 
-def test_columns_hold_each_episode_by_name_and_outcome() -> None:
-    cols = episode_columns([outcome("crash", "merge", 7, env_index=1, episode_index=2), outcome("timeout", "exit", 9)])
-    assert cols == {"scenario": ["merge", "exit"], "seed": [7, 9], "env": [1, 0], "episode": [2, 0],
-                    "failed": [1, 1], "crashed": [1, 0]}
+def test_the_block_names_each_episode_once_and_each_outcome_as_a_bit() -> None:
+    a = [outcome("crash", "merge", 7, env_index=1, episode_index=2), outcome("timeout", "merge", 7),
+         outcome("success", "exit", 9)]
+    b = [outcome("success", "exit", 9), outcome("success", "merge", 7), outcome("crash", "merge", 7, env_index=1, episode_index=2)]
+    block = outcome_block({"a": a, "b": b}, SPECS)
+    # Sorted by (seed, env, episode) within a scenario, whatever order the policies finished them in.
+    assert block["episodes"] == {"merge": ["7/0/0", "7/1/2"], "exit": ["9/0/0"]}
+    assert block["failed"] == {"a": {"merge": "11", "exit": "0"}, "b": {"merge": "01", "exit": "0"}}
+    assert block["crashed"] == {"a": {"merge": "01", "exit": "0"}, "b": {"merge": "01", "exit": "0"}}
+    assert block["specs"] == specs_digest(SPECS)
+    with pytest.raises(RuntimeError, match="other merge episodes"):
+        outcome_block({"a": a, "b": b[:2]}, SPECS)
 
 
 def test_pairing_stored_files_gives_the_tests_of_pairing_the_outcomes(tmp_path) -> None:
@@ -57,6 +70,17 @@ def test_pairing_stored_files_gives_the_tests_of_pairing_the_outcomes(tmp_path) 
     # Another policy of a file, chosen by name: a policy against itself has no discordant pair.
     _, _, same = pair(fa, fb, policy_b="other")
     assert same["mixed"]["failed"].p_value == 1.0 and same["mixed"]["failed"].a_only == 0
+    # The order of the scenarios does not change the episodes.
+    fc = read_evaluation(_file(tmp_path / "c.json", {"brake": _policy_b()},
+                               evaluation={**EVALUATION, "scenarios": ["exit", "merge"]}))
+    assert _tests_as_dicts(pair(fa, fc)[2]) == _tests_as_dicts(tests)
+
+
+def test_one_policy_of_one_file_against_itself_is_refused(tmp_path) -> None:
+    fa = read_evaluation(_file(tmp_path / "a.json", {"dqn": _policy_a(), "rule": _policy_b()}))
+    with pytest.raises(ConfigError, match="'dqn' against itself"):
+        pair(fa, fa)
+    assert pair(fa, fa, policy_b="rule")[:2] == ("dqn", "rule")
 
 
 def test_the_spec_digest_names_the_specs_not_their_order() -> None:
@@ -68,6 +92,7 @@ def test_the_spec_digest_names_the_specs_not_their_order() -> None:
 @pytest.mark.parametrize(("change", "needle"), [
     ({"evaluation": {**EVALUATION, "episodes_per_scenario": 4}}, "different evaluation sets (episodes_per_scenario: 6 against 4)"),
     ({"evaluation": {**EVALUATION, "reset_seed": 2**30 + 1}}, "different evaluation sets (reset_seed"),
+    ({"evaluation": {**EVALUATION, "backend": "highway"}}, "different evaluation sets (backend: 'fast' against 'highway')"),
     ({"specs": "another"}, "different scenario specs"),
 ])
 def test_files_of_other_episodes_or_specs_are_refused(tmp_path, change, needle) -> None:
@@ -80,7 +105,7 @@ def test_files_of_other_episodes_or_specs_are_refused(tmp_path, change, needle) 
 
 def test_other_episodes_under_the_same_evaluation_set_are_refused(tmp_path) -> None:
     fa = read_evaluation(_file(tmp_path / "a.json", {"dqn": _policy_a()}))
-    fb = read_evaluation(_file(tmp_path / "b.json", {"brake": _policy_b()[:-1]}))
+    fb = read_evaluation(_file(tmp_path / "b.json", {"brake": [*_policy_b()[:-1], outcome("success", "exit", 99)]}))
     with pytest.raises(ConfigError, match="not the same evaluation episodes"):
         pair(fa, fb)
 
@@ -92,12 +117,16 @@ def test_an_unknown_policy_is_refused_with_the_ones_there(tmp_path) -> None:
 
 
 @pytest.mark.parametrize(("edit", "needle"), [
-    (lambda d: d.pop("episodes"), "holds no per-episode outcomes"),
+    (lambda d: d.pop("outcomes"), "holds no per-episode outcomes"),
     (lambda d: d["config"].pop("evaluation"), "not a `latentdrive evaluate --json` result"),
-    (lambda d: d["episodes"]["policies"]["dqn"].update(failed=[2] * 12), "malformed"),
-    (lambda d: d["episodes"]["policies"]["dqn"].update(seed=[0] * 11), "columns of different lengths"),
-    (lambda d: d["episodes"]["policies"]["dqn"].pop("crashed"), "malformed"),
-    (lambda d: d["episodes"].update(policies=[]), "malformed"),
+    (lambda d: d["config"]["evaluation"].pop("reset_seed"), "lacks reset_seed"),
+    (lambda d: d["outcomes"]["failed"]["dqn"].update(merge="012110"), "malformed"),
+    (lambda d: d["outcomes"]["failed"]["dqn"].update(merge="0"), "malformed"),
+    (lambda d: d["outcomes"]["crashed"].pop("dqn"), "malformed"),
+    (lambda d: d["outcomes"]["episodes"].pop("exit"), "malformed"),
+    (lambda d: d["outcomes"]["episodes"]["merge"].__setitem__(0, "1/0/0"), "name the merge episodes wrongly"),
+    (lambda d: d["outcomes"]["episodes"]["merge"].__setitem__(0, "a/0/0"), "name the merge episodes wrongly"),
+    (lambda d: d["outcomes"]["episodes"].update(merge="0/0/0"), "name the merge episodes wrongly"),
     (lambda d: d.update(policy="absent"), "has no per-episode outcomes"),
 ])
 def test_a_damaged_file_is_named_in_one_line(tmp_path, edit, needle) -> None:

@@ -249,12 +249,31 @@ def test_compare_refuses_files_of_other_episodes_in_one_line(tmp_path, capsys, r
     _fails(capsys, ["compare", str(four), str(two), "--json", str(tmp_path / "p.json")],
            "different evaluation sets (episodes_per_scenario: 4 against 2)", tmp_path)
     _fails(capsys, ["compare", str(four), str(four), "--b", "rule"], "no per-episode outcomes of policy 'rule'", tmp_path)
+    _fails(capsys, ["compare", str(four), str(four)], "'stop' against itself", tmp_path)
+    _fails(capsys, ["compare", str(four), str(two), "--json", str(two)], "is one of the files read", tmp_path)
+    _fails(capsys, ["aggregate", str(four), "--json", str(four)], "is one of the files read", tmp_path)
     doc = json.loads(four.read_text())
-    del doc["episodes"]
+    del doc["outcomes"]
     old = tmp_path / "old.json"
     old.write_text(json.dumps(doc))
     _fails(capsys, ["compare", str(old), str(four)], "holds no per-episode outcomes", tmp_path)
     _fails(capsys, ["compare", str(four), str(tmp_path / "absent.json")], "absent.json", tmp_path)
+
+
+def test_compare_refuses_a_run_evaluated_on_its_own_version_of_a_spec(tmp_path, capsys, raw_run):
+    run = tmp_path / "run"
+    shutil.copytree(raw_run, run)
+    cfg = json.loads((run / "config.json").read_text())
+    cfg["train"]["specs"]["intersection"]["duration"] += 1.0  # the run stores another intersection than the preset
+    (run / "config.json").write_text(json.dumps(cfg))
+    ran, preset = tmp_path / "ran.json", tmp_path / "preset.json"
+    common = ["--scenarios", "intersection", "--episodes", "2", "--envs", "2", "-q"]
+    assert main(["evaluate", str(run), "--policy", "stop", "--json", str(ran), *common]) == 0
+    assert main(["evaluate", "--policy", "stop", "--json", str(preset), *common]) == 0
+    capsys.readouterr()
+    _fails(capsys, ["compare", str(ran), str(preset)], "different scenario specs", tmp_path)
+    # The references of the run's file met the run's version of the spec too.
+    _fails(capsys, ["compare", str(ran), str(preset), "--a", "stop"], "different scenario specs", tmp_path)
 
 
 def test_bad_evaluation_options_fail_before_any_work(tmp_path, capsys, raw_run):
