@@ -1,12 +1,13 @@
 """Per-episode outcomes in an ``evaluate --json`` file, and paired tests between two files.
 
-``latentdrive evaluate ... --json FILE`` stores, under ``"outcomes"``, which episodes each
-policy it played failed and crashed (:func:`outcome_block`): the episodes once per scenario,
-each named ``"SEED/ENV/EPISODE"`` (its reset seed, environment slot and index in that slot),
-sorted, and for each policy a string of 0s and 1s per scenario aligned with them.
-``latentdrive compare A.json B.json`` then pairs a policy of one file with a policy of
-another on the same episodes (McNemar's exact test and the paired difference,
-:func:`latentdrive.evaluate.report.compare`) without playing them again (:func:`pair`).
+``latentdrive evaluate ... --json FILE`` stores, under ``"outcomes"``, every episode each
+policy it played, as the study's step folders store them
+(:func:`latentdrive.outcome.outcomes_to_json`: scenario, reset seed, environment slot and
+index in it, steps, per-AV crashes, arrivals and returns, speed, cause), beside a digest of
+the scenario specs played (:func:`outcome_block`). ``latentdrive compare A.json B.json``
+then pairs a policy of one file with a policy of another on the same episodes (McNemar's
+exact test and the paired difference, :func:`latentdrive.evaluate.report.compare`) without
+playing them again (:func:`pair`).
 
 Two files pair only if they scored the same evaluation set (the scenarios, in any order,
 episodes per scenario, environments, backend, reset seed) on the same scenario specs
@@ -20,18 +21,17 @@ from __future__ import annotations
 
 import hashlib
 import json
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from latentdrive.config import ConfigError
-from latentdrive.evaluate.report import EpisodeResult, compare
+from latentdrive.evaluate.report import compare
 from latentdrive.evaluate.seeds import evaluation_set
 from latentdrive.evaluate.stats import PairedTest
 from latentdrive.fileio import read_json
-from latentdrive.outcome import EpisodeOutcome
+from latentdrive.outcome import EpisodeOutcome, outcomes_from_json, outcomes_to_json
 from latentdrive.scenarios import ScenarioSpec
 
 __all__ = ["EPISODE_FIELDS", "StoredEvaluation", "outcome_block", "pair", "read_evaluation", "specs_digest"]
@@ -39,34 +39,13 @@ __all__ = ["EPISODE_FIELDS", "StoredEvaluation", "outcome_block", "pair", "read_
 #: The fields of an evaluation set (``EvaluationSet.as_dict``) that name the episodes played;
 #: the planner's settings describe only the ``plan`` reference.
 EPISODE_FIELDS = ("scenarios", "episodes_per_scenario", "envs", "backend", "reset_seed", "seed_offset")
-_KEY = re.compile(r"(0|[1-9][0-9]{0,18})/(0|[1-9][0-9]{0,5})/(0|[1-9][0-9]{0,9})")
-_FLAGS = re.compile(r"[01]*")
-
-
-def _key(o: EpisodeOutcome) -> tuple[int, int, int]:
-    return int(o.seed), int(o.env_index), int(o.episode_index)
 
 
 def outcome_block(outcomes: Mapping[str, Sequence[EpisodeOutcome]], specs: Mapping[str, ScenarioSpec]) -> dict[str, Any]:
-    """The ``"outcomes"`` block of ``evaluate --json`` for every policy's outcomes (all on
-    the same episodes, as :func:`~latentdrive.experiments.policy.evaluate_many` plays them):
-    ``{"specs": DIGEST, "episodes": {SCENARIO: ["SEED/ENV/EPISODE", ...]}, "failed":
-    {POLICY: {SCENARIO: "0110..."}}, "crashed": {...}}``."""
-    keys: dict[str, list[tuple[int, int, int]]] = {}
-    failed: dict[str, dict[str, str]] = {}
-    crashed: dict[str, dict[str, str]] = {}
-    for name, outs in outcomes.items():
-        by: dict[str, dict[tuple[int, int, int], EpisodeOutcome]] = {}
-        for o in outs:
-            by.setdefault(o.scenario, {})[_key(o)] = o
-        for scenario, episodes in by.items():
-            order = keys.setdefault(scenario, sorted(episodes))
-            if sorted(episodes) != order:
-                raise RuntimeError(f"{name} played other {scenario} episodes than the first policy")
-            failed.setdefault(name, {})[scenario] = "".join("1" if episodes[k].failed else "0" for k in order)
-            crashed.setdefault(name, {})[scenario] = "".join("1" if episodes[k].crashed else "0" for k in order)
-    return {"specs": specs_digest(specs), "episodes": {s: [f"{a}/{b}/{c}" for a, b, c in ks] for s, ks in keys.items()},
-            "failed": failed, "crashed": crashed}
+    """The ``"outcomes"`` block of ``evaluate --json``: ``{"specs": DIGEST, "policies":
+    {POLICY: [episode, ...]}}``, each episode as :func:`~latentdrive.outcome.outcomes_to_json`
+    writes it."""
+    return {"specs": specs_digest(specs), "policies": {name: outcomes_to_json(list(o)) for name, o in outcomes.items()}}
 
 
 def specs_digest(specs: Mapping[str, ScenarioSpec]) -> str:
@@ -86,25 +65,7 @@ class StoredEvaluation:
     specs: str
     #: The file's first policy (its run, else its first reference).
     head: str
-    episodes: dict[str, list[EpisodeResult]]
-
-
-def _policies(where: str, block: dict[str, Any], keys: dict[str, list[tuple[int, int, int]]]) -> dict[str, list[EpisodeResult]]:
-    failed, crashed = block.get("failed"), block.get("crashed")
-    if not isinstance(failed, dict) or not isinstance(crashed, dict) or not failed or set(failed) != set(crashed):
-        raise ConfigError(f"{where}: the per-episode outcomes are malformed (failed and crashed of the same policies expected)")
-    out: dict[str, list[EpisodeResult]] = {}
-    for name in failed:
-        f, c = failed[name], crashed[name]
-        ok = isinstance(f, dict) and isinstance(c, dict) and set(f) == set(c) == set(keys) and all(
-            isinstance(f[s], str) and isinstance(c[s], str) and _FLAGS.fullmatch(f[s]) and _FLAGS.fullmatch(c[s])
-            and len(f[s]) == len(c[s]) == len(keys[s]) for s in keys)
-        if not ok:
-            raise ConfigError(f"{where}: the per-episode outcomes of {name!r} are malformed (a string of 0s and 1s "
-                              "per scenario, one per episode, expected)")
-        out[name] = [EpisodeResult(s, seed, env, ep, f[s][i] == "1", c[s][i] == "1")
-                     for s in keys for i, (seed, env, ep) in enumerate(keys[s])]
-    return out
+    episodes: dict[str, list[EpisodeOutcome]]
 
 
 def read_evaluation(path: str | Path) -> StoredEvaluation:
@@ -120,23 +81,20 @@ def read_evaluation(path: str | Path) -> StoredEvaluation:
     if block is None:
         raise ConfigError(f"{where}: holds no per-episode outcomes (written before `evaluate --json` stored them); "
                           "evaluate again with --json")
-    episodes = block.get("episodes") if isinstance(block, dict) else None
-    if not isinstance(block, dict) or not isinstance(block.get("specs"), str) or not isinstance(episodes, dict) \
-            or set(episodes) != set(evaluation["scenarios"]):
-        raise ConfigError(f"{where}: the per-episode outcomes are malformed (specs and the episodes of every "
-                          "scenario expected)")
-    keys: dict[str, list[tuple[int, int, int]]] = {}
-    for s, names in episodes.items():
-        matches = [_KEY.fullmatch(n) if isinstance(n, str) else None for n in names] if isinstance(names, list) else [None]
-        if not all(matches) or len(set(names)) != len(names):
-            raise ConfigError(f"{where}: the per-episode outcomes name the {s} episodes wrongly "
-                              "(distinct SEED/ENV/EPISODE expected)")
-        keys[s] = [(int(m.group(1)), int(m.group(2)), int(m.group(3))) for m in matches if m]
+    policies = block.get("policies") if isinstance(block, dict) else None
+    if not isinstance(block, dict) or not isinstance(block.get("specs"), str) or not isinstance(policies, dict) \
+            or not policies:
+        raise ConfigError(f"{where}: the per-episode outcomes are malformed (specs and policies expected)")
+    episodes: dict[str, list[EpisodeOutcome]] = {}
+    for name, items in policies.items():
+        try:
+            episodes[name] = outcomes_from_json(items)
+        except ValueError as exc:
+            raise ConfigError(f"{where}: the per-episode outcomes of {name!r} are malformed ({exc})") from None
     head = doc.get("policy")
-    policies = _policies(where, block, keys)
-    if not isinstance(head, str) or head not in policies:
+    if not isinstance(head, str) or head not in episodes:
         raise ConfigError(f"{where}: its policy {head!r} has no per-episode outcomes")
-    return StoredEvaluation(where, evaluation, block["specs"], head, policies)
+    return StoredEvaluation(where, evaluation, block["specs"], head, episodes)
 
 
 def _policy(ev: StoredEvaluation, name: str | None) -> str:

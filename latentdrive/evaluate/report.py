@@ -12,7 +12,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, fields
-from typing import Any, NamedTuple
+from typing import Any
 
 import numpy as np
 
@@ -21,7 +21,6 @@ from latentdrive.outcome import FAILURE_CAUSES, EpisodeOutcome
 
 __all__ = [
     "MIXED",
-    "EpisodeResult",
     "PolicyReport",
     "ScenarioSummary",
     "cause_counts",
@@ -37,23 +36,6 @@ __all__ = [
 MIXED = "mixed"
 
 EpisodeKey = tuple[str, int, int, int]
-
-
-class EpisodeResult(NamedTuple):
-    """What a paired comparison reads of one episode: which it was (as in
-    :class:`~latentdrive.outcome.EpisodeOutcome`) and whether it failed and crashed; the
-    form in which ``evaluate --json`` stores outcomes (:mod:`latentdrive.evaluate.episodes`)."""
-
-    scenario: str
-    seed: int
-    env_index: int
-    episode_index: int
-    failed: bool
-    crashed: bool
-
-
-#: An episode as :func:`compare` reads it.
-Paired = EpisodeOutcome | EpisodeResult
 
 
 @dataclass(frozen=True)
@@ -227,12 +209,12 @@ def format_causes(outcomes: Mapping[str, Sequence[EpisodeOutcome]]) -> str:
     return render_table(header, rows, left=2)
 
 
-def _episode_key(o: Paired) -> EpisodeKey:
+def _episode_key(o: EpisodeOutcome) -> EpisodeKey:
     return (o.scenario, int(o.seed), int(o.env_index), int(o.episode_index))
 
 
-def _index(outcomes: Sequence[Paired], name: str) -> dict[EpisodeKey, Paired]:
-    index: dict[EpisodeKey, Paired] = {}
+def _index(outcomes: Sequence[EpisodeOutcome], name: str) -> dict[EpisodeKey, EpisodeOutcome]:
+    index: dict[EpisodeKey, EpisodeOutcome] = {}
     for o in outcomes:
         key = _episode_key(o)
         if key in index:
@@ -242,7 +224,7 @@ def _index(outcomes: Sequence[Paired], name: str) -> dict[EpisodeKey, Paired]:
 
 
 def compare(
-    a: Sequence[Paired], b: Sequence[Paired]
+    a: Sequence[EpisodeOutcome], b: Sequence[EpisodeOutcome]
 ) -> dict[str, dict[str, PairedTest]]:
     """Paired tests of policy ``a`` against ``b`` on the same evaluation episodes.
 

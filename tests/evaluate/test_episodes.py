@@ -10,6 +10,7 @@ import pytest
 from latentdrive.config import ConfigError
 from latentdrive.evaluate.episodes import outcome_block, pair, read_evaluation, specs_digest
 from latentdrive.evaluate.report import compare
+from latentdrive.outcome import outcomes_from_json, outcomes_to_json
 from latentdrive.scenarios import get_spec
 
 from .test_report import outcome
@@ -43,18 +44,13 @@ def _tests_as_dicts(tests):
     return {s: {k: t.as_dict() for k, t in by.items()} for s, by in tests.items()}
 
 
-def test_the_block_names_each_episode_once_and_each_outcome_as_a_bit() -> None:
-    a = [outcome("crash", "merge", 7, env_index=1, episode_index=2), outcome("timeout", "merge", 7),
-         outcome("success", "exit", 9)]
-    b = [outcome("success", "exit", 9), outcome("success", "merge", 7), outcome("crash", "merge", 7, env_index=1, episode_index=2)]
-    block = outcome_block({"a": a, "b": b}, SPECS)
-    # Sorted by (seed, env, episode) within a scenario, whatever order the policies finished them in.
-    assert block["episodes"] == {"merge": ["7/0/0", "7/1/2"], "exit": ["9/0/0"]}
-    assert block["failed"] == {"a": {"merge": "11", "exit": "0"}, "b": {"merge": "01", "exit": "0"}}
-    assert block["crashed"] == {"a": {"merge": "01", "exit": "0"}, "b": {"merge": "01", "exit": "0"}}
-    assert block["specs"] == specs_digest(SPECS)
-    with pytest.raises(RuntimeError, match="other merge episodes"):
-        outcome_block({"a": a, "b": b[:2]}, SPECS)
+def test_the_block_holds_every_episode_as_the_study_stores_it() -> None:
+    a = [outcome("crash", "merge", 7, env_index=1, episode_index=2), outcome("timeout", "exit", 9)]
+    block = outcome_block({"a": a}, SPECS)
+    assert block == {"specs": specs_digest(SPECS), "policies": {"a": outcomes_to_json(a)}}
+    back = outcomes_from_json(json.loads(json.dumps(block))["policies"]["a"])
+    assert [(o.scenario, o.seed, o.env_index, o.episode_index, o.failed, o.crashed, o.cause) for o in back] == \
+        [("merge", 7, 1, 2, True, True, "HV ahead"), ("exit", 9, 0, 0, True, False, "time-out")]
 
 
 def test_pairing_stored_files_gives_the_tests_of_pairing_the_outcomes(tmp_path) -> None:
@@ -120,13 +116,12 @@ def test_an_unknown_policy_is_refused_with_the_ones_there(tmp_path) -> None:
     (lambda d: d.pop("outcomes"), "holds no per-episode outcomes"),
     (lambda d: d["config"].pop("evaluation"), "not a `latentdrive evaluate --json` result"),
     (lambda d: d["config"]["evaluation"].pop("reset_seed"), "lacks reset_seed"),
-    (lambda d: d["outcomes"]["failed"]["dqn"].update(merge="012110"), "malformed"),
-    (lambda d: d["outcomes"]["failed"]["dqn"].update(merge="0"), "malformed"),
-    (lambda d: d["outcomes"]["crashed"].pop("dqn"), "malformed"),
-    (lambda d: d["outcomes"]["episodes"].pop("exit"), "malformed"),
-    (lambda d: d["outcomes"]["episodes"]["merge"].__setitem__(0, "1/0/0"), "name the merge episodes wrongly"),
-    (lambda d: d["outcomes"]["episodes"]["merge"].__setitem__(0, "a/0/0"), "name the merge episodes wrongly"),
-    (lambda d: d["outcomes"]["episodes"].update(merge="0/0/0"), "name the merge episodes wrongly"),
+    (lambda d: d["outcomes"].pop("specs"), "malformed (specs and policies expected)"),
+    (lambda d: d["outcomes"].update(policies={}), "malformed (specs and policies expected)"),
+    (lambda d: d["outcomes"]["policies"]["dqn"][0].pop("seed"), "outcomes of 'dqn' are malformed"),
+    (lambda d: d["outcomes"]["policies"]["dqn"][0].update(seed=-1), "outcomes of 'dqn' are malformed"),
+    (lambda d: d["outcomes"]["policies"]["dqn"][0].update(agent_crashed=[True]), "outcomes of 'dqn' are malformed"),
+    (lambda d: d["outcomes"]["policies"].update(dqn="x"), "outcomes of 'dqn' are malformed"),
     (lambda d: d.update(policy="absent"), "has no per-episode outcomes"),
 ])
 def test_a_damaged_file_is_named_in_one_line(tmp_path, edit, needle) -> None:
