@@ -30,6 +30,7 @@ __all__ = [
     "format_table",
     "policy_report",
     "summarize",
+    "tests_json",
 ]
 
 #: The name of the pooled-over-all-scenarios entry in reports and comparisons.
@@ -258,6 +259,11 @@ def compare(
         }
 
     return {name: tests(ks) for name, ks in groups.items()}
+
+
+def tests_json(results: Mapping[str, Mapping[str, PairedTest]]) -> dict[str, dict[str, Any]]:
+    """:func:`compare`'s result as JSON values."""
+    return {scope: {k: t.as_dict() for k, t in by.items()} for scope, by in results.items()}
 
 
 def _pp(t: PairedTest) -> str:

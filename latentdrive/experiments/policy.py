@@ -13,7 +13,7 @@ from latentdrive.config import ConfigError
 from latentdrive.evaluate.gif import save_episode_gif
 from latentdrive.evaluate.planner import PlannerConfig
 from latentdrive.evaluate.policies import SIMULATOR_POLICIES, reference_policy
-from latentdrive.evaluate.report import PolicyReport, compare, policy_report
+from latentdrive.evaluate.report import PolicyReport, policy_report
 from latentdrive.evaluate.run import evaluate_policy
 from latentdrive.fileio import atomic_write_text
 from latentdrive.models.bottleneck import PAIR_CHANNELS
@@ -93,11 +93,6 @@ def evaluate_many(makers: dict[str, Callable[[], Policy]], eval_set: EvaluationS
     """Reports and raw outcomes of every policy on the same episodes."""
     outcomes = {name: eval_set.run(make, progress, name) for name, make in makers.items()}
     return {name: policy_report(o) for name, o in outcomes.items()}, outcomes
-
-
-def paired(outcomes: dict[str, list[EpisodeOutcome]], a: str, b: str) -> dict[str, Any]:
-    """Paired tests of ``a`` against ``b`` (same episodes), as JSON."""
-    return {scope: {k: t.as_dict() for k, t in tests.items()} for scope, tests in compare(outcomes[a], outcomes[b]).items()}
 
 
 def write_json(path: str | Path, data: dict[str, Any]) -> Path:

@@ -81,7 +81,6 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from latentdrive.experiments.policy import (
         EvaluationSet,
         evaluate_many,
-        paired,
         policy_makers,
         save_policy_gif,
         write_json,
@@ -177,12 +176,13 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         print(format_causes(outcomes))
     comparison = None
     if args.compare:
-        from latentdrive.evaluate.report import compare
+        from latentdrive.evaluate.report import compare, tests_json
 
         a, b = runs[0], args.compare
-        comparison = paired(outcomes, a, b)
+        tests = compare(outcomes[a], outcomes[b])  # once: its intervals are bootstrapped
+        comparison = tests_json(tests)
         print(f"paired on the same episodes: A = {a}, B = {b}")
-        print(format_compare(compare(outcomes[a], outcomes[b]), names=("A", "B")))
+        print(format_compare(tests, names=("A", "B")))
     if args.json:
         head = runs[0] if runs else references[0]
         doc: dict[str, Any] = {
@@ -215,7 +215,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
 def _cmd_compare(args: argparse.Namespace) -> int:
     from latentdrive.evaluate.episodes import pair, read_evaluation
-    from latentdrive.evaluate.report import format_compare
+    from latentdrive.evaluate.report import format_compare, tests_json
     from latentdrive.experiments.policy import write_json
 
     _check_output(args.json, [args.a_file, args.b_file])
@@ -226,7 +226,7 @@ def _cmd_compare(args: argparse.Namespace) -> int:
     if args.json:
         doc = {"a": {"file": a.path, "policy": na, "evaluation": a.evaluation},
                "b": {"file": b.path, "policy": nb, "evaluation": b.evaluation},
-               "tests": {scope: {k: t.as_dict() for k, t in by.items()} for scope, by in tests.items()}}
+               "tests": tests_json(tests)}
         print(f"wrote {write_json(args.json, doc)}")
     return 0
 
