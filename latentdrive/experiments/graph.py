@@ -55,6 +55,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("vfan", "attention_width"): 64,
     ("vfan", "attention_heads"): 4,
     ("vfan", "attention_context"): 0,
+    ("vfan", "attention_stem"): "conv",
 }
 
 

@@ -66,6 +66,7 @@ class VFANConfig(Config):
     attention_width: int = Field(64, ge=8, le=1024, description="Token features of the attention reader (reader 'attention').")
     attention_heads: int = Field(4, ge=1, le=64, description="Attention heads of the attention reader; must divide attention_width.")
     attention_context: int = Field(0, ge=0, le=8, description="Residual 3x3 convolutions over the attention reader's token grid, dilated by 2 (reader 'attention'): each lets a token see two tokens (12 m at the default cells) further each way, so that a car's footprints in frames a second apart, which lie in different tokens once it moves more than a token's 6 m relative to the observer, meet. 0, the default, is the reader without them.")
+    attention_stem: Literal["conv", "patch"] = Field("conv", description="The attention reader's stem: 'conv', two overlapping stride-2 convolutions (the default); 'patch', one convolution over non-overlapping 4 x 4 blocks of cells and a 1 x 1 convolution, less arithmetic per update (latentdrive bench --train prints GFLOP per update), each token seeing its own 6 m block only (so attention_context's layers, dilated by 2, skip the tokens between).")
 
     @model_validator(mode="after")
     def _heads_divide(self) -> VFANConfig:
@@ -195,7 +196,7 @@ class QNetwork(nn.Module):
                 raise ValueError("the attention reader needs the map's geometry (resolution, behind)")
             self.body = MapAttentionBody(observation_shape, *geometry, width=cfg.attention_width,
                                          heads=cfg.attention_heads, context=cfg.attention_context,
-                                         hidden=cfg.hidden, dueling=dueling)
+                                         hidden=cfg.hidden, dueling=dueling, stem=cfg.attention_stem)
         else:
             self.body = VFANBody(cfg, body_input, dueling=dueling)
 

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from latentdrive.config import ConfigError, validate
-from latentdrive.models.attention import MapAttentionBody, token_grid
+from latentdrive.models.attention import MapAttentionBody, token_grid, token_shape
 from latentdrive.models.vfan import QNetwork, VFANConfig
 from latentdrive.rl.config import PolicyTrainConfig
 
@@ -30,6 +30,21 @@ def test_the_token_grid_lies_where_the_map_draws_its_cells():
 def test_odd_sized_maps_get_as_many_positions_as_the_stem_gives():
     body = MapAttentionBody((4, 2, 30, 45), 1.5, 10.0)
     assert body(torch.rand(3, 4, 2, 30, 45)).shape == (3, 5)
+    # 30 x 45 cells: the overlapping stem gives ceil(floor(n/2)/2) = 8 x 11 tokens, the
+    # patch stem the 7 x 11 whole 4 x 4 blocks.
+    assert token_shape(30, 45) == (8, 11)
+    assert token_shape(30, 45, "patch") == (7, 11)
+    patch = MapAttentionBody((4, 2, 30, 45), 1.5, 10.0, stem="patch")
+    assert (patch.rows, patch.cols) == (7, 11)
+    assert patch(torch.rand(3, 4, 2, 30, 45)).shape == (3, 5)
+
+
+def test_the_patch_stem_puts_its_tokens_where_the_conv_stem_does():
+    # On the default map both stems make the 8 x 16 tokens of 4 x 4-cell blocks.
+    assert torch.equal(token_grid(32, 64, 1.5, 32.0, "patch")[0], token_grid(32, 64, 1.5, 32.0)[0])
+    assert token_grid(32, 64, 1.5, 32.0, "patch")[1] == (4, 5)
+    with pytest.raises(ValueError, match="unknown stem 'pixel'"):
+        MapAttentionBody(SHAPE, 1.5, 32.0, stem="pixel")  # type: ignore[arg-type]
 
 
 def test_the_other_cells_are_read_as_a_set():
@@ -66,31 +81,35 @@ def test_q_values_from_the_summary_are_the_networks_own(dueling):
         QNetwork(VFANConfig(), "raw", (4, 4, 32, 64)).q_from_summary(torch.rand(3, 128))
 
 
-@pytest.mark.parametrize(("context", "sees"), [(0, 1), (1, 3), (2, 5)])
-def test_context_layers_widen_what_the_observers_token_sees(context, sees):
+@pytest.mark.parametrize(("stem", "context", "sees"),
+                         [("conv", 0, {0, 1}), ("conv", 1, {0, 1, 2, 3}), ("conv", 2, {0, 1, 2, 3, 4, 5}),
+                          ("patch", 0, {0}), ("patch", 1, {0, 2}), ("patch", 2, {0, 2, 4})])
+def test_context_layers_widen_what_the_observers_token_sees(stem, context, sees):
     # Cells changed in one token-sized block at a time, ``k`` tokens ahead of the
-    # observer's: its own token feels them up to ``sees`` tokens away (the stem's 8 cells
-    # reach one token on, each dilated layer two more).
+    # observer's (k = 0: its own block): its own token feels the blocks ``sees`` (the conv
+    # stem's 8 cells reach one token on, the patch stem's 4 none; each layer, dilated by 2,
+    # two more, so over the patch stem it skips the tokens between).
     torch.manual_seed(0)
-    body = MapAttentionBody(SHAPE, 1.5, 32.0, context=context).eval()
+    body = MapAttentionBody(SHAPE, 1.5, 32.0, context=context, stem=stem).eval()
     assert len(body.context) == context
     x = torch.rand(1, *SHAPE)
     me_row, me_col = 4, 5
     felt = []
-    for k in range(1, 8):
+    for k in range(0, 8):
         changed = x.clone()
         col = 4 * (me_col + k)
         changed[..., 4 * me_row: 4 * me_row + 4, col: col + 4] = 1.0 - changed[..., 4 * me_row: 4 * me_row + 4, col: col + 4]
         with torch.no_grad():
             moved = (body.tokens(changed)[0, me_row * 16 + me_col] - body.tokens(x)[0, me_row * 16 + me_col])
         felt.append(moved.abs().max().item() > 1e-6)
-    assert felt == [k <= sees for k in range(1, 8)]
+    assert felt == [k in sees for k in range(0, 8)]
 
 
-@pytest.mark.parametrize(("dueling", "context"), [(False, 0), (True, 0), (False, 2)])
-def test_a_raw_network_with_the_reader_gives_five_q_values(dueling, context):
-    net = QNetwork(VFANConfig(reader="attention", attention_context=context), "raw", SHAPE, dueling=dueling,
-                   geometry=(1.5, 32.0))
+@pytest.mark.parametrize(("dueling", "context", "stem"),
+                         [(False, 0, "conv"), (True, 0, "conv"), (False, 2, "conv"), (True, 0, "patch")])
+def test_a_raw_network_with_the_reader_gives_five_q_values(dueling, context, stem):
+    net = QNetwork(VFANConfig(reader="attention", attention_context=context, attention_stem=stem), "raw", SHAPE,
+                   dueling=dueling, geometry=(1.5, 32.0))
     q = net(torch.rand(5, *SHAPE))
     assert q.shape == (5, 5)
     q.sum().backward()
