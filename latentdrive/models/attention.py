@@ -13,13 +13,16 @@ reader applies the same idea to the map's cells:
   cell's features plus a linear embedding of its centre's position relative to the observer
   (metres / 50, along and across its heading). The stem is two overlapping stride-2
   convolutions (``stem="conv"``, the default), or (``stem="patch"``) one convolution over
-  non-overlapping 4 × 4 blocks followed by a 1 × 1 convolution: 2.5 times less arithmetic
-  (the stem is nearly all of an update's), each token seeing its own block only;
-- optionally (``context`` > 0) residual 3 × 3 convolutions over the token grid, dilated
-  by 2: the stem sees 8 cells (12 m at the default cells) around a token, and between
+  non-overlapping 4 × 4 blocks followed by a 1 × 1 convolution: about half the arithmetic
+  of an update (``latentdrive bench --train`` prints GFLOP per update), each token seeing
+  its own block only;
+- optionally (``context`` > 0) residual 3 × 3 convolutions over the token grid: between
   frames a second apart a car's footprint moves by its speed relative to the observer's
   (10 m at 10 m/s, nearly two tokens), so its footprints in two frames can lie in
-  different tokens; each layer lets a token see two tokens further each way;
+  different tokens. The conv stem sees 8 cells (12 m at the default cells) around a token,
+  one token further each way, so its context layers are dilated by 2 and each lets a
+  token see two tokens further each way; the patch stem's token sees its own block, so
+  its layers are not dilated and each reaches one token further;
 - the token of the observer's own cell, embedded, queries every token with ``heads`` heads
   (shared weights for every cell: a car contributes the same way wherever it is, its
   position entering only as a feature);
@@ -117,7 +120,8 @@ class MapAttentionBody(nn.Module):
         self.grid: Tensor
         self.register_buffer("grid", grid, persistent=False)
         self.position = nn.Linear(2, width)
-        self.context = nn.ModuleList(nn.Conv2d(width, width, kernel_size=3, padding=2, dilation=2)
+        reach = 2 if stem == "conv" else 1
+        self.context = nn.ModuleList(nn.Conv2d(width, width, kernel_size=3, padding=reach, dilation=reach)
                                      for _ in range(context))
         self.query = nn.Sequential(nn.Linear(width, width), nn.ReLU(), nn.Linear(width, width))
         self.attend = nn.MultiheadAttention(width, heads, batch_first=True)

@@ -43,7 +43,7 @@ from torch import Tensor, nn
 
 from latentdrive.actions import N_ACTIONS
 from latentdrive.config import Config
-from latentdrive.models.attention import MapAttentionBody
+from latentdrive.models.attention import MapAttentionBody, Stem
 from latentdrive.models.bottleneck import BottleneckNetwork
 
 __all__ = ["LATENT_MODES", "MODES", "Mode", "QNetwork", "VFANConfig"]
@@ -65,8 +65,8 @@ class VFANConfig(Config):
     reader: Literal["conv", "attention"] = Field("conv", description="How the raw map is read: 'conv', the paper's 3D-convolutional body (the fields above); 'attention', a convolutional stem to a grid of 6 m tokens that the observer's own token queries by multi-head attention, the same weights for every cell (latentdrive.models.attention; raw mode only; channels, kernels, strides and temporal_kernel do not apply).")
     attention_width: int = Field(64, ge=8, le=1024, description="Token features of the attention reader (reader 'attention').")
     attention_heads: int = Field(4, ge=1, le=64, description="Attention heads of the attention reader; must divide attention_width.")
-    attention_context: int = Field(0, ge=0, le=8, description="Residual 3x3 convolutions over the attention reader's token grid, dilated by 2 (reader 'attention'): each lets a token see two tokens (12 m at the default cells) further each way, so that a car's footprints in frames a second apart, which lie in different tokens once it moves more than a token's 6 m relative to the observer, meet. 0, the default, is the reader without them.")
-    attention_stem: Literal["conv", "patch"] = Field("conv", description="The attention reader's stem: 'conv', two overlapping stride-2 convolutions (the default); 'patch', one convolution over non-overlapping 4 x 4 blocks of cells and a 1 x 1 convolution, less arithmetic per update (latentdrive bench --train prints GFLOP per update), each token seeing its own 6 m block only (so attention_context's layers, dilated by 2, skip the tokens between).")
+    attention_context: int = Field(0, ge=0, le=8, description="Residual 3x3 convolutions over the attention reader's token grid, dilated by 2 over the default stem (reader 'attention'): each lets a token see two tokens (12 m at the default cells) further each way, so that a car's footprints in frames a second apart, which lie in different tokens once it moves more than a token's 6 m relative to the observer, meet. 0, the default, is the reader without them.")
+    attention_stem: Stem = Field("conv", description="The attention reader's stem: 'conv', two overlapping stride-2 convolutions (the default); 'patch', one convolution over non-overlapping 4 x 4 blocks of cells and a 1 x 1 convolution, about half the arithmetic per update (latentdrive bench --train prints GFLOP per update), each token seeing its own 6 m block only (attention_context's layers are then not dilated), and the last rows or columns of a map whose sides are not multiples of 4 left unread.")
 
     @model_validator(mode="after")
     def _heads_divide(self) -> VFANConfig:

@@ -45,6 +45,18 @@ def test_the_patch_stem_puts_its_tokens_where_the_conv_stem_does():
     assert token_grid(32, 64, 1.5, 32.0, "patch")[1] == (4, 5)
     with pytest.raises(ValueError, match="unknown stem 'pixel'"):
         MapAttentionBody(SHAPE, 1.5, 32.0, stem="pixel")  # type: ignore[arg-type]
+    with pytest.raises(ConfigError, match="attention_stem"):
+        validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "attention", "attention_stem": "pixel"}})
+
+
+@pytest.mark.parametrize("stem", ["conv", "patch"])
+def test_the_token_shape_is_what_the_stem_makes(stem):
+    for h in range(4, 41, 3):
+        for w in range(4, 41, 5):
+            body = MapAttentionBody((2, 1, h, w), 1.5, 0.0, width=8, heads=2, hidden=8, stem=stem)
+            with torch.no_grad():
+                f = body.stem(torch.zeros(1, 2, h, w))
+            assert (f.shape[2], f.shape[3]) == token_shape(h, w, stem) == (body.rows, body.cols)
 
 
 def test_the_other_cells_are_read_as_a_set():
@@ -83,12 +95,12 @@ def test_q_values_from_the_summary_are_the_networks_own(dueling):
 
 @pytest.mark.parametrize(("stem", "context", "sees"),
                          [("conv", 0, {0, 1}), ("conv", 1, {0, 1, 2, 3}), ("conv", 2, {0, 1, 2, 3, 4, 5}),
-                          ("patch", 0, {0}), ("patch", 1, {0, 2}), ("patch", 2, {0, 2, 4})])
+                          ("patch", 0, {0}), ("patch", 1, {0, 1}), ("patch", 2, {0, 1, 2})])
 def test_context_layers_widen_what_the_observers_token_sees(stem, context, sees):
     # Cells changed in one token-sized block at a time, ``k`` tokens ahead of the
     # observer's (k = 0: its own block): its own token feels the blocks ``sees`` (the conv
-    # stem's 8 cells reach one token on, the patch stem's 4 none; each layer, dilated by 2,
-    # two more, so over the patch stem it skips the tokens between).
+    # stem's 8 cells reach one token on and each layer, dilated by 2, two more; the patch
+    # stem's 4 cells none, and each of its undilated layers one more).
     torch.manual_seed(0)
     body = MapAttentionBody(SHAPE, 1.5, 32.0, context=context, stem=stem).eval()
     assert len(body.context) == context
@@ -106,10 +118,16 @@ def test_context_layers_widen_what_the_observers_token_sees(stem, context, sees)
 
 
 @pytest.mark.parametrize(("dueling", "context", "stem"),
-                         [(False, 0, "conv"), (True, 0, "conv"), (False, 2, "conv"), (True, 0, "patch")])
+                         [(False, 0, "conv"), (True, 0, "conv"), (False, 2, "conv"), (True, 0, "patch"),
+                          (False, 0, "patch")])
 def test_a_raw_network_with_the_reader_gives_five_q_values(dueling, context, stem):
     net = QNetwork(VFANConfig(reader="attention", attention_context=context, attention_stem=stem), "raw", SHAPE,
                    dueling=dueling, geometry=(1.5, 32.0))
+    # The setting reaches the network: the patch stem's first layer reads 4 x 4 blocks.
+    assert isinstance(net.body, MapAttentionBody)
+    assert net.body.stem[0].stride == {"conv": (2, 2), "patch": (4, 4)}[stem]
+    if not dueling and not context:
+        assert sum(p.numel() for p in net.parameters()) == {"conv": 120_485, "patch": 114_373}[stem]
     q = net(torch.rand(5, *SHAPE))
     assert q.shape == (5, 5)
     q.sum().backward()
