@@ -46,7 +46,13 @@ from latentdrive.rl.dqn import DQNConfig, losses
 from latentdrive.rl.replay import Batch, LatentStore
 from latentdrive.runtime import autocast
 
-__all__ = ["AuxLearning", "GradientShare", "aux_error", "aux_head", "aux_step", "gradient_share", "scene_targets"]
+__all__ = ["FIELDS", "RANKS", "AuxLearning", "GradientShare", "aux_error", "aux_head", "aux_step", "field_fit",
+           "gradient_share", "scene_targets"]
+
+#: The values of a neighbour's target row (latentdrive.observe.state), in order.
+FIELDS = ("x", "y", "vx", "vy", "cos", "sin", "av", "crashed", "present")
+#: Groups of neighbour ranks (nearest first, 0-based, end exclusive) :func:`field_fit` reports.
+RANKS = ((0, 1), (1, 4), (4, None))
 
 
 def aux_head(features: int, hidden: int, k: int) -> nn.Sequential:
@@ -82,6 +88,39 @@ def aux_step(summary: Callable[[Tensor], Tensor], head: nn.Module, optimizer: to
     loss.backward()
     optimizer.step()
     return float(loss.detach())
+
+
+def field_fit(pred: NDArray[np.floating], targets: NDArray[np.floating], k: int) -> dict[str, float]:
+    """How much of each target the head's predictions explain: R² = 1 − SSE / SST per value.
+
+    ``pred`` and ``targets`` are ``(N, view_target_size(k))`` rows: the AV's two speeds,
+    then ``k`` neighbour rows of :data:`FIELDS`. Keys: ``"speed"``, ``"lane speed"``, and
+    ``"FIELD RANKS"`` for each field and group of neighbour ranks in :data:`RANKS` (``"x
+    1"``, ``"vx 2-4"``, ``"present 5-k"``), pooled over the group's rows where a vehicle
+    is present (every row for ``present``). NaN where a group holds no such rows or its
+    target does not vary. 1 is a perfect fit, 0 no better than the target's mean."""
+    n_f = len(FIELDS)
+    if pred.shape != targets.shape or pred.ndim != 2 or pred.shape[1] != 2 + k * n_f:
+        raise ValueError(f"pred and targets must both be (N, {2 + k * n_f}), got {pred.shape} and {targets.shape}")
+
+    def r2(p: NDArray[np.floating], t: NDArray[np.floating]) -> float:
+        sst = float(((t - t.mean()) ** 2).sum()) if t.size else 0.0
+        return 1.0 - float(((p - t) ** 2).sum()) / sst if sst > 0 else float("nan")
+
+    out = {"speed": r2(pred[:, 0], targets[:, 0]), "lane speed": r2(pred[:, 1], targets[:, 1])}
+    p_rows = pred[:, 2:].reshape(len(pred), k, n_f).astype(np.float64)
+    t_rows = targets[:, 2:].reshape(len(targets), k, n_f).astype(np.float64)
+    for lo, hi in RANKS:
+        end = k if hi is None else min(hi, k)
+        if lo >= end:
+            continue
+        label = f"{lo + 1}" if end == lo + 1 else f"{lo + 1}-{end}"
+        p_g, t_g = p_rows[:, lo:end].reshape(-1, n_f), t_rows[:, lo:end].reshape(-1, n_f)
+        here = t_g[:, -1] > 0.5
+        for j, name in enumerate(FIELDS):
+            rows = slice(None) if name == "present" else here
+            out[f"{name} {label}"] = r2(p_g[rows, j], t_g[rows, j])
+    return out
 
 
 class GradientShare(NamedTuple):

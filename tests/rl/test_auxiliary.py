@@ -13,7 +13,15 @@ import torch.nn.functional as F
 from latentdrive.config import ConfigError, ObservationConfig
 from latentdrive.models.vfan import QNetwork, VFANConfig
 from latentdrive.observe.state import view_target_size
-from latentdrive.rl.auxiliary import AuxLearning, aux_head, aux_step, gradient_share, scene_targets
+from latentdrive.rl.auxiliary import (
+    FIELDS,
+    AuxLearning,
+    aux_head,
+    aux_step,
+    field_fit,
+    gradient_share,
+    scene_targets,
+)
 from latentdrive.rl.dqn import DQNConfig, td_targets, update, updates_owed
 from latentdrive.rl.learner import Learner
 from latentdrive.rl.policy import build_network, load_policy_network
@@ -266,7 +274,41 @@ def test_the_share_script_reads_a_runs_checkpoint_and_refuses_a_run_without_the_
     assert "(joint)" in out and "aux / Q" in out
     ratio = float(out.split("aux / Q")[1].split()[0])
     assert np.isfinite(ratio) and ratio > 0
+    # --fit: a row of R² per group of neighbour ranks (AUX keeps 4: "1" and "2-4").
+    assert script["main"]([str(tmp_path / "run"), "--batches", "2", "--fit"]) == 0
+    table = capsys.readouterr().out.split("R² of the auxiliary head's predictions: speed ")[1].splitlines()
+    assert table[1].split() == ["neighbours", *FIELDS]
+    assert [line.split()[0] for line in table[2:]] == ["1", "2-4"]
+    assert float(table[0].split(",")[0]) <= 1.0
     train_policy(tiny(mode="raw", steps=100), tmp_path / "plain", progress=False, say=lambda _line: None)
     assert script["main"]([str(tmp_path / "plain")]) == 2
     err = capsys.readouterr().err
     assert "aux_scale is 0" in err and err.count("\n") == 1
+
+
+def test_the_fit_of_each_target_is_its_share_of_variance_explained():
+    # Two neighbours, four samples; the second neighbour is absent in the last two rows.
+    k, n_f = 2, len(FIELDS)
+    rng = np.random.default_rng(0)
+    t = rng.normal(size=(4, 2 + k * n_f))
+    rows = t[:, 2:].reshape(4, k, n_f)
+    rows[:, :, -1] = 1.0
+    rows[2:, 1] = 0.0  # absent: a zero row
+    t[:, 2:] = rows.reshape(4, -1)
+    fit = field_fit(t, t, k)
+    assert fit["speed"] == fit["x 1"] == fit["vy 2"] == 1.0
+    assert np.isnan(fit["present 1"])  # every nearest neighbour is there: nothing to explain
+    assert fit["present 2"] == 1.0
+    # Predicting the mean explains nothing; predicting the mean plus the error's size of
+    # the spread, negative. Absent rows do not count: junk there leaves x 2 alone.
+    mean = t.copy()
+    mean[:, 0] = t[:, 0].mean()
+    assert field_fit(mean, t, k)["speed"] == pytest.approx(0.0)
+    junk = t.copy()
+    junk[2:, 2 + n_f] = 99.0
+    assert field_fit(junk, t, k)["x 2"] == 1.0
+    worse = t.copy()
+    worse[:, 2] = t[:, 2] + 2 * t[:, 2].std()
+    assert field_fit(worse, t, k)["x 1"] == pytest.approx(-3.0)  # SSE = 4 SST
+    with pytest.raises(ValueError, match=r"\(N, 20\)"):
+        field_fit(t[:, :-1], t[:, :-1], k)
