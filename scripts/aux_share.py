@@ -27,7 +27,7 @@ import torch
 
 from latentdrive.bnn.checkpoint import CheckpointError
 from latentdrive.config import ConfigError, validate
-from latentdrive.rl.auxiliary import FIELDS, field_fit, gradient_share
+from latentdrive.rl.auxiliary import field_fit, fit_table, gradient_share
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.learner import Learner
 from latentdrive.rl.policy import build_network, read_run_config
@@ -76,10 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.fit:
         fit = field_fit(np.concatenate(preds), np.concatenate(wanted), learner.aux.k)
         print(f"R² of the auxiliary head's predictions: speed {fit['speed']:.2f}, lane speed {fit['lane speed']:.2f}")
-        groups = sorted({key.split(" ", 1)[1] for key in fit if key.startswith("x ")}, key=lambda g: int(g.split("-")[0]))
-        print("neighbours  " + "".join(f"{f:>9}" for f in FIELDS))
-        for g in groups:
-            print(f"{g:<10}  " + "".join(f"{fit[f'{f} {g}']:>9.2f}" for f in FIELDS))
+        print("\n".join(fit_table(fit)))
     return 0
 
 

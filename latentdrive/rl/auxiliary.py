@@ -47,7 +47,7 @@ from latentdrive.rl.replay import Batch, LatentStore
 from latentdrive.runtime import autocast
 
 __all__ = ["FIELDS", "RANKS", "AuxLearning", "GradientShare", "aux_error", "aux_head", "aux_step", "field_fit",
-           "gradient_share", "scene_targets"]
+           "fit_table", "gradient_share", "scene_targets"]
 
 #: The values of a neighbour's target row (latentdrive.observe.state), in order.
 FIELDS = ("x", "y", "vx", "vy", "cos", "sin", "av", "crashed", "present")
@@ -121,6 +121,14 @@ def field_fit(pred: NDArray[np.floating], targets: NDArray[np.floating], k: int)
             rows = slice(None) if name == "present" else here
             out[f"{name} {label}"] = r2(p_g[rows, j], t_g[rows, j])
     return out
+
+
+def fit_table(fit: dict[str, float]) -> list[str]:
+    """:func:`field_fit`'s neighbour values as text lines: a header of :data:`FIELDS`, then
+    a row of R² per group of ranks."""
+    groups = sorted({key.split(" ", 1)[1] for key in fit if key.startswith("x ")}, key=lambda g: int(g.split("-")[0]))
+    return ["neighbours  " + "".join(f"{f:>9}" for f in FIELDS),
+            *(f"{g:<10}  " + "".join(f"{fit[f'{f} {g}']:>9.2f}" for f in FIELDS) for g in groups)]
 
 
 class GradientShare(NamedTuple):

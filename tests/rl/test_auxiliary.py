@@ -312,3 +312,25 @@ def test_the_fit_of_each_target_is_its_share_of_variance_explained():
     assert field_fit(worse, t, k)["x 1"] == pytest.approx(-3.0)  # SSE = 4 SST
     with pytest.raises(ValueError, match=r"\(N, 20\)"):
         field_fit(t[:, :-1], t[:, :-1], k)
+
+
+@pytest.mark.parametrize("readout", ["query", "queries", "self-attention"])
+def test_the_reader_probe_fits_a_fresh_reader_to_a_runs_targets(tmp_path, tiny, capsys, readout):
+    script = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "reader_probe.py"), run_name="probe")
+    cfg = tiny(mode="raw", steps=150, dqn={**AUX, "aux_joint": True}, vfan={"reader": "attention", "hidden": 32})
+    train_policy(cfg, tmp_path / "run", progress=False, say=lambda _line: None)
+    args = [str(tmp_path / "run"), "--readout", readout, "--steps", "3", "--block", "10"]
+    assert script["main"](args) == 0
+    out = capsys.readouterr().out
+    assert f"readout {readout}, stem conv; 3 steps" in out
+    table = out.splitlines()[1:]
+    assert table[0].split() == ["neighbours", *FIELDS]
+    assert [line.split()[0] for line in table[1:]] == ["1", "2-4"]
+    # Held out: every tenth block of 10 observation ids, so the ids ending 0-9 of 0-99 etc.
+    train, held = script["split"](np.arange(250), 10)
+    assert held.tolist() == [*range(0, 10), *range(100, 110), *range(200, 210)]
+    assert len(train) == 220
+    # Too few observations to hold any out in blocks of 10 000: refused in one line.
+    assert script["main"]([str(tmp_path / "run"), "--block", "10000"]) == 2
+    err = capsys.readouterr().err
+    assert "too small to hold observations out" in err and err.count("\n") == 1
