@@ -1,7 +1,7 @@
 """How well a map reader can be taught to see the vehicles, in minutes instead of a training run.
 
     python scripts/reader_probe.py RUN [--readout query|queries|self-attention] [--stem conv|patch]
-                                       [--steps 3000] [--held-out 1024] [--seed 0]
+                                       [--steps 3000] [--held-out 1024] [--block 2000] [--seed 0]
 
 Takes the maps and the auxiliary targets (``dqn.aux_scale``: the AV's speeds and its
 nearest vehicles in view, exact) that a finished run's replay holds, fits a fresh attention
