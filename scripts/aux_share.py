@@ -26,11 +26,9 @@ import numpy as np
 import torch
 
 from latentdrive.bnn.checkpoint import CheckpointError
-from latentdrive.config import ConfigError, validate
+from latentdrive.config import ConfigError
 from latentdrive.rl.auxiliary import field_fit, fit_table, gradient_share
-from latentdrive.rl.config import PolicyTrainConfig
-from latentdrive.rl.learner import Learner
-from latentdrive.rl.policy import build_network, read_run_config
+from latentdrive.rl.learner import restore_with_targets
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,16 +41,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.batches < 1:
         raise SystemExit(f"--batches must be at least 1, got {args.batches}")
     try:
-        cfg = validate(PolicyTrainConfig, read_run_config(args.run)["train"])
-        if cfg.dqn.aux_scale == 0:
-            raise ConfigError(f"{args.run}: trained without the auxiliary loss (dqn.aux_scale is 0)")
-        dqn = cfg.dqn if args.scale is None else cfg.dqn.model_copy(update={"aux_scale": args.scale})
-        # A finished run restores its replay only with training left: ask for one more step.
-        cfg = cfg.model_copy(update={"steps": 10**12})
         torch.manual_seed(0)
-        net = build_network(cfg, None)
-        learner = Learner(cfg, net, torch.device("cpu"), cfg.envs * cfg.scenario_specs()[0].n_av)
-        learner.load(args.run)
+        cfg, net, learner = restore_with_targets(args.run)
+        dqn = cfg.dqn if args.scale is None else cfg.dqn.model_copy(update={"aux_scale": args.scale})
     except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

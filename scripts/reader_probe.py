@@ -31,12 +31,10 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from latentdrive.bnn.checkpoint import CheckpointError
-from latentdrive.config import ConfigError, validate
+from latentdrive.config import ConfigError
 from latentdrive.models.attention import MapAttentionBody
 from latentdrive.rl.auxiliary import aux_head, field_fit, fit_table
-from latentdrive.rl.config import PolicyTrainConfig
-from latentdrive.rl.learner import Learner
-from latentdrive.rl.policy import build_network, read_run_config
+from latentdrive.rl.learner import restore_with_targets
 
 READOUTS = ("query", "queries", "self-attention")
 
@@ -85,14 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     if min(args.steps, args.held_out, args.block) < 1:
         raise SystemExit("--steps, --held-out and --block must be at least 1")
     try:
-        cfg = validate(PolicyTrainConfig, read_run_config(args.run)["train"])
-        if cfg.dqn.aux_scale == 0:
-            raise ConfigError(f"{args.run}: trained without the auxiliary loss (dqn.aux_scale is 0): its replay holds no targets")
-        # A finished run restores its replay only with training left: ask for one more step.
-        cfg = cfg.model_copy(update={"steps": 10**12})
-        net = build_network(cfg, None)
-        learner = Learner(cfg, net, torch.device("cpu"), cfg.envs * cfg.scenario_specs()[0].n_av)
-        learner.load(args.run)
+        cfg, _, learner = restore_with_targets(args.run)
     except (ConfigError, CheckpointError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2

@@ -27,6 +27,7 @@ from latentdrive.bnn.checkpoint import (
     section,
     tensors_digest,
 )
+from latentdrive.config import ConfigError, validate
 from latentdrive.errors import first_line
 from latentdrive.fileio import atomic_write_bytes, confined
 from latentdrive.models.vfan import LATENT_MODES, QNetwork
@@ -36,12 +37,12 @@ from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.dqn import epsilon, priority_beta, target_step, update, updates_owed
 from latentdrive.rl.imitate import expert_share, imitation_update, label_weights
 from latentdrive.rl.nstep import NStepEntries, NStepWindow
-from latentdrive.rl.policy import CHECKPOINT, FeatureCache
+from latentdrive.rl.policy import CHECKPOINT, FeatureCache, build_network, read_run_config
 from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Replay
 from latentdrive.rollout import StepRecord
 from latentdrive.runtime import resolve_precision
 
-__all__ = ["REPLAY_PATTERN", "Learner", "make_store"]
+__all__ = ["REPLAY_PATTERN", "Learner", "make_store", "restore_with_targets"]
 
 #: Replay of segment k: ``replay-<k>.safetensors``. A new name per segment, so that a kill
 #: while saving never leaves a checkpoint beside a replay it does not belong to.
@@ -340,3 +341,18 @@ class Learner:
             raise CheckpointError(f"{path}: replay does not belong to the checkpoint (written by another save)")
         return segment + 1
 
+
+
+def restore_with_targets(run: Path) -> tuple[PolicyTrainConfig, QNetwork, Learner]:
+    """A run trained with the auxiliary loss, restored on the CPU for inspection: its config,
+    network and learner (replay and auxiliary targets included). Raises ConfigError for a
+    run without the loss (its replay holds no targets), CheckpointError for a damaged one."""
+    cfg = validate(PolicyTrainConfig, read_run_config(run)["train"])
+    if cfg.dqn.aux_scale == 0:
+        raise ConfigError(f"{run}: trained without the auxiliary loss (dqn.aux_scale is 0): its replay holds no targets")
+    # A finished run restores its replay only with training left: ask for one more step.
+    cfg = cfg.model_copy(update={"steps": 10**12})
+    net = build_network(cfg, None)
+    learner = Learner(cfg, net, torch.device("cpu"), cfg.envs * cfg.scenario_specs()[0].n_av)
+    learner.load(run)
+    return cfg, net, learner
