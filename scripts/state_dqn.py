@@ -25,6 +25,13 @@ head of its own to predict, from the map, the AV's speeds and its 12 nearest veh
 the map's view as the exact-state vector holds them (:func:`aux_targets`). The targets are
 used in training only; the policy reads the map.
 
+With ``--reader blobs`` the network reads the map through rules instead of a learned stem:
+the vehicles that the fixed detector and tracker of ``scripts/map_blobs.py`` finds in the
+default map's two newest frames (place, motion over the last step, value, size), its
+``--neighbours`` nearest, and the road channel averaged over ``--road-pool`` cells, in the
+exact-state vector's layout, through the same :class:`EgoAttention`. It asks whether the
+learned stem or what the map shows holds the map's policies back.
+
 It is a diagnostic reference, not the paper's method: the state vector has no raster and no
 sensor noise, and holds the AV's route, which the paper's map does not. If this learner beats
 the rule driver where the map's does not, the map's reader (or the map) is what holds the
@@ -38,7 +45,7 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
-        [--reader state|map] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
+        [--reader state|map|blobs] [--road-pool CELLS] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
     python scripts/state_dqn.py --pair A.json B.json
 
@@ -97,6 +104,9 @@ _COPY = runpy.run_path(str(Path(__file__).resolve().parent / "state_copy.py"), r
 EgoAttention: type[nn.Module] = _COPY["EgoAttention"]
 batch_features: Callable[..., NDArray[np.float32]] = _COPY["batch_features"]
 mlp: Callable[[int, int], nn.Module] = _COPY["mlp"]
+_BLOBS = runpy.run_path(str(Path(__file__).resolve().parent / "map_blobs.py"), run_name="map_blobs")
+blob_features: Callable[..., NDArray[np.float32]] = _BLOBS["blob_features"]
+blob_ego_size: Callable[[ObservationConfig, int], int] = _BLOBS["ego_size"]
 
 #: The map the env renders is not read here: the smallest one keeps rendering cheap.
 TINY_MAP = {"height": 4, "width": 4, "frames": 1, "behind": 0.0}
@@ -232,10 +242,11 @@ class StatePolicy:
     def __init__(self, net: nn.Module, k: int, radius: float, route: bool,
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
                  pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True,
-                 reader: str = "state", dtype: torch.dtype = torch.float32, aux: bool = False) -> None:
+                 reader: str = "state", dtype: torch.dtype = torch.float32, aux: bool = False,
+                 road_pool: int = 4) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
         self.pose, self.view_box, self.show_time, self.reader, self.dtype = pose, view_box, show_time, reader, dtype
-        self.aux = aux
+        self.aux, self.road_pool = aux, road_pool
         self.latest: NDArray[np.float32] | None = None
 
     def read(self, inp: PolicyInput) -> NDArray[np.float32]:
@@ -243,6 +254,8 @@ class StatePolicy:
         specs = list(inp.simulator.specs if inp.simulator is not None else [get_spec(n) for n in inp.scenarios])
         if self.reader == "map":
             return map_features(inp, specs, self.pose, self.show_time, self.aux)
+        if self.reader == "blobs":
+            return blob_features(inp.obs, ObservationConfig(), self.k, self.road_pool)
         return features(inp, specs, self.k, self.radius, self.route, self.pose, self.view_box, self.show_time)
 
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
@@ -267,7 +280,7 @@ def next_input(rec: StepRecord, names: NDArray[np.object_], simulator: Any) -> P
 
 def env_map(args: argparse.Namespace) -> dict[str, Any]:
     """The ``observation`` overrides of the envs: the map is rendered only to be read."""
-    return MAP if args.reader == "map" else TINY_MAP
+    return MAP if args.reader in ("map", "blobs") else TINY_MAP
 
 
 def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], episodes: int,
@@ -275,7 +288,7 @@ def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], epi
     def make() -> Policy:
         return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
                            view_box=args.view_box, show_time=not args.no_time, reader=args.reader,
-                           dtype=resolve_precision(args.precision, CPU))
+                           dtype=resolve_precision(args.precision, CPU), road_pool=args.road_pool)
 
     net.eval()
     try:
@@ -305,6 +318,11 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
         net = MapPoseNet(ObservationConfig(), args.hidden, aux=N_AUX if aux else 0)
         n_in, what = net.n_map + N_POSE, "map reader and place" + (f", auxiliary targets at {aux:g} x lr" if aux else "")
         store = MapAndPose(capacity, net.shape, N_POSE + (N_AUX if aux else 0))
+    elif args.reader == "blobs":
+        ego = blob_ego_size(ObservationConfig(), args.road_pool)
+        n_in, what = ego + args.neighbours * PER_NEIGHBOUR, f"vehicles found in the map, road pooled {args.road_pool}"
+        net = EgoAttention(ego, PER_NEIGHBOUR, args.neighbours, args.hidden)
+        store = LatentStore(capacity, (n_in,))
     else:
         n_in, what = state_size(args.neighbours, route), args.arch
         net = (EgoAttention(state_size(0, route), PER_NEIGHBOUR, args.neighbours, args.hidden)
@@ -323,7 +341,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     transitions = updates = 0
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
                          pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time,
-                         reader=args.reader, dtype=dtype, aux=bool(aux))
+                         reader=args.reader, dtype=dtype, aux=bool(aux), road_pool=args.road_pool)
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -426,8 +444,11 @@ def main() -> int:
                     help="see only the neighbours inside this box, metres (alone: the default map's view, "
                          "32 m behind, 64 m ahead, 24 m to each side)")
     ap.add_argument("--arch", choices=("attention", "mlp"), default="attention")
-    ap.add_argument("--reader", choices=("state", "map"), default="state",
-                    help="read exact states (default) or the VelocityMap with the AV's place (module docstring)")
+    ap.add_argument("--reader", choices=("state", "map", "blobs"), default="state",
+                    help="read exact states (default), the VelocityMap with the AV's place, or the vehicles a "
+                         "fixed detector finds in the map (module docstring)")
+    ap.add_argument("--road-pool", type=int, default=4, metavar="CELLS",
+                    help="with --reader blobs: average the road channel over CELLS x CELLS blocks (default 4)")
     ap.add_argument("--aux", type=float, default=0.0, metavar="SCALE",
                     help="with --reader map: after each Q update, also train the reader to predict, from the map, "
                          "the AV's speeds and its 12 nearest vehicles inside the map's view (exact states), by "
@@ -465,6 +486,9 @@ def main() -> int:
         ap.error("--eval-every must be at least 0")
     if args.aux < 0 or (args.aux and args.reader != "map"):
         ap.error("--aux takes a scale of at least 0, and only with --reader map")
+    grid = ObservationConfig()
+    if args.road_pool < 1 or grid.height % args.road_pool or grid.width % args.road_pool:
+        ap.error(f"--road-pool must divide the map's {grid.height} x {grid.width} cells, got {args.road_pool}")
     if args.view_box is not None:
         try:
             box = tuple(float(v) for v in args.view_box.split(","))
@@ -481,7 +505,7 @@ def main() -> int:
     scenarios = args.scenarios.split(",")
     net, _ = train(args, scenarios, cfg, reward)
     net.eval()
-    name = "map DQN" if args.reader == "map" else "state DQN"
+    name = {"map": "map DQN", "blobs": "blob DQN"}.get(args.reader, "state DQN")
     outcomes = {name: evaluate(net, args, scenarios, args.episodes),
                 "rule": evaluate_policy(reference_policy("rule"), scenarios, args.episodes, envs=16)}
     if args.compare:

@@ -128,7 +128,7 @@ def test_each_stored_transition_leads_one_decision_on_across_auto_resets():
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=300, radius=80.0,
                               no_route=False, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1, reader="state", precision="fp32", aux=0.0)
+                              eval_every=0, eval_episodes=1, reader="state", precision="fp32", aux=0.0, road_pool=4)
     cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
     _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
     n = replay.added
@@ -205,7 +205,7 @@ def test_the_map_reader_stores_each_transition_one_decision_on_across_auto_reset
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=200, radius=80.0,
                               no_route=True, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1, reader="map", precision="fp32", aux=0.0)
+                              eval_every=0, eval_episodes=1, reader="map", precision="fp32", aux=0.0, road_pool=4)
     cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
     _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
     n = replay.added
@@ -297,3 +297,31 @@ def test_pairing_files_of_other_episodes_is_a_one_line_error(tmp_path, monkeypat
         MOD["main"]()
     err = capsys.readouterr().err
     assert exit_.value.code == 1 and "missing.json: not an outcomes file" in err and err.count("\n") == 1
+
+
+def test_a_road_pool_that_does_not_divide_the_map_is_refused(monkeypatch, capsys):
+    monkeypatch.setattr("sys.argv", ["state_dqn.py", "--reader", "blobs", "--road-pool", "5"])
+    with pytest.raises(SystemExit) as exit_:
+        MOD["main"]()
+    assert exit_.value.code == 2 and "--road-pool must divide the map's 32 x 64 cells, got 5" in capsys.readouterr().err
+
+
+def test_the_blob_reader_stores_what_the_detector_finds_in_each_map():
+    import argparse
+
+    from latentdrive.config import ObservationConfig
+    from latentdrive.rl.dqn import DQNConfig
+    from latentdrive.scenarios.spec import RewardConfig
+
+    args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=200, radius=80.0,
+                              no_route=True, no_pose=False, no_time=False, view_box=None, out=None,
+                              eval_every=0, eval_episodes=1, reader="blobs", precision="fp32", aux=0.0, road_pool=8)
+    net, replay = MOD["train"](args, ["highway"], DQNConfig(n_step=1, learning_starts=100, batch_size=8), RewardConfig())
+    n = replay.added
+    ego = MOD["blob_ego_size"](ObservationConfig(), 8)
+    rows = replay.store.get(replay.obs_id[:n])
+    assert n >= 200 and rows.shape[1] == ego + 4 * 9 == 2 + 4 * 8 + 36
+    vehicles = rows[:, ego:].reshape(n, 4, 9)
+    assert vehicles[:, 0, -1].mean() > 0.5  # highway traffic is in view most of the time
+    assert np.all(np.diff(np.hypot(vehicles[..., 0], vehicles[..., 1]) * vehicles[..., -1], axis=1)[vehicles[:, 1:, -1] > 0] >= 0)
+    assert net(torch.from_numpy(rows[:3])).shape == (3, 5)

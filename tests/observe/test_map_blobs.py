@@ -1,0 +1,103 @@
+"""``scripts/map_blobs.py``: the vehicles a fixed detector and tracker finds in a map."""
+
+import runpy
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from latentdrive.config import ObservationConfig
+from latentdrive.observe.state import PER_NEIGHBOUR
+from latentdrive.observe.velocitymap import AV, HV, MV, RL
+
+MOD = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "map_blobs.py"), run_name="map_blobs")
+CFG = ObservationConfig()  # 32 x 64 cells of 1.5 m, 32 m behind
+OLD, NEW = 0, 1
+
+
+def _maps(n: int = 1) -> np.ndarray:
+    return np.zeros((n, 4, 2, CFG.height, CFG.width), dtype=np.float32)
+
+
+def test_a_vehicle_is_placed_in_metres_and_its_motion_is_the_step_from_the_frame_before():
+    m = _maps()
+    m[0, HV, NEW, 16:18, 30:33] = 0.8  # centre: row 16.5, column 31
+    m[0, HV, OLD, 16:18, 28:31] = 0.7  # two columns (3 m) further back
+    m[0, AV, NEW, 4:6, 10:12] = 0.5  # centre: row 4.5, column 10.5; no AV before it
+    m[0, HV, OLD, 4:6, 12:14] = 0.5  # near it, but a human driver's: not its match
+    rows = MOD["blob_features"](m, CFG, 3)[0, MOD["ego_size"](CFG, 4):].reshape(3, PER_NEIGHBOUR)
+    # x = (column + 0.5)·1.5 − 32, y = (row + 0.5)·1.5 − 24, nearest first.
+    np.testing.assert_allclose(rows[0], [15.25 / 50, 1.5 / 50, 3.0 / 20, 0.0, 0.8, 1.0, 0.0, 0.6, 1.0], atol=1e-6)
+    np.testing.assert_allclose(rows[1], [-15.5 / 50, -16.5 / 50, 0.0, 0.0, 0.5, 0.0, 1.0, 0.4, 1.0], atol=1e-6)
+    assert not rows[2].any()  # padding
+
+
+def test_the_avs_part_is_its_speed_in_two_frames_and_the_pooled_road():
+    m = _maps()
+    m[0, MV, OLD, 15:17, 21:24] = 0.30
+    m[0, MV, NEW, 15:17, 21:24] = 0.35
+    m[0, RL, NEW, 8:24] = 1.0  # row blocks 2 to 5 of 4 cells
+    m[0, RL, OLD] = 1.0  # the older road is not read
+    ego = MOD["blob_features"](m, CFG, 2)[0, : MOD["ego_size"](CFG, 4)]
+    np.testing.assert_allclose(ego[:2], [0.30, 0.35])
+    road = ego[2:].reshape(8, 16)
+    assert (road[2:6] == 1.0).all() and not road[:2].any() and not road[6:].any()
+    assert MOD["ego_size"](CFG, 2) == 2 + 16 * 32
+
+
+def test_a_vehicle_beyond_the_gate_or_in_another_observation_is_not_matched():
+    m = _maps(2)
+    m[0, HV, NEW, 16:18, 40:43] = 1.0
+    gate_cells = int(MOD["GATE"] / CFG.resolution) + 1
+    m[0, HV, OLD, 16:18, 40 - gate_cells: 43 - gate_cells] = 1.0  # just beyond the gate
+    m[1, HV, OLD, 16:18, 40:43] = 1.0  # the same place, another observation
+    rows = MOD["blob_features"](m, CFG, 1)[:, MOD["ego_size"](CFG, 4):]
+    assert rows[0, 5] == 0.0 and rows[0, 2] == 0.0 and rows[0, 8] == 1.0
+    assert not rows[1].any()  # observation 1 has no vehicle in its newest frame
+
+
+def test_only_the_k_nearest_are_kept_and_leading_dimensions_are_kept():
+    m = _maps(6).reshape(2, 3, 4, 2, CFG.height, CFG.width)
+    for col in (60, 22, 40, 5, 30):  # the AV stands at column 21
+        m[1, 2, HV, NEW, 15:17, col:col + 2] = 1.0
+    out = MOD["blob_features"](m, CFG, 2)
+    assert out.shape == (2, 3, MOD["ego_size"](CFG, 4) + 2 * PER_NEIGHBOUR)
+    rows = out[1, 2, MOD["ego_size"](CFG, 4):].reshape(2, PER_NEIGHBOUR)
+    x = rows[:, 0] * 50
+    np.testing.assert_allclose(x, [(22.5 + 0.5) * 1.5 - 32, (30.5 + 0.5) * 1.5 - 32], atol=1e-5)
+    assert not out[0].any() and not out[1, :2].any()
+
+
+def test_bad_maps_and_pools_are_refused_by_name():
+    with pytest.raises(ValueError, match="expected maps"):
+        MOD["blob_features"](np.zeros((1, 4, 1, 32, 64), dtype=np.float32), CFG, 2)
+    with pytest.raises(ValueError, match="pool must divide"):
+        MOD["blob_features"](_maps(), CFG, 2, pool=5)
+
+
+def test_on_a_drawn_map_the_vehicles_are_found_where_the_scene_puts_them():
+    # The fast backend's own maps, sensor noise included: most vehicles found in the newest
+    # frame lie within 1.5 m of a vehicle of the exact-state vector inside the map's view.
+    from latentdrive.rollout import rollout
+    from latentdrive.vec import make_vec
+
+    state = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "state_dqn.py"), run_name="sd")
+    vec = make_vec(["highway", "roundabout"], 2, backend="fast")
+    specs = list(vec.simulator.specs)
+    names = np.asarray([s.name for s in specs], dtype=object)
+    gaps: list[float] = []
+    for step, rec in enumerate(rollout(vec, lambda inp: np.ones(inp.obs.shape[:2], dtype=np.int64), seed=4)):
+        if step < 5:
+            continue
+        exact = state["features"](state["next_input"](rec, names, vec.simulator), specs, 12, 80.0, False, False,
+                                  state["MAP_VIEW"])
+        blobs = MOD["blob_features"](rec.next_obs, CFG, 12)
+        for e, a in zip(*np.nonzero(rec.agents.active), strict=True):
+            b = blobs[e, a, MOD["ego_size"](CFG, 4):].reshape(12, PER_NEIGHBOUR)
+            s = exact[e, a, -12 * PER_NEIGHBOUR:].reshape(12, PER_NEIGHBOUR)
+            b, s = b[b[:, -1] > 0, :2] * 50, s[s[:, -1] > 0, :2] * 50
+            if len(b) and len(s):
+                gaps += list(np.hypot(b[:, None, 0] - s[None, :, 0], b[:, None, 1] - s[None, :, 1]).min(1))
+        break
+    vec.close()
+    assert len(gaps) >= 4 and np.mean(np.asarray(gaps) < 1.5) >= 0.75
