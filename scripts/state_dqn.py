@@ -30,7 +30,10 @@ the vehicles that the fixed detector and tracker of ``scripts/map_blobs.py`` fin
 default map's two newest frames (place, motion over the last step, value, size), its
 ``--neighbours`` nearest, and the road channel averaged over ``--road-pool`` cells, in the
 exact-state vector's layout, through the same :class:`EgoAttention`. It asks whether the
-learned stem or what the map shows holds the map's policies back.
+learned stem or what the map shows holds the map's policies back. ``--exact-vehicles``
+replaces the vehicles found by the exact-state rows of those inside the map's view
+(:data:`MAP_VIEW`; headings, signed velocities, no noise), keeping the map's speed and road:
+what a perfect detector would give this reader.
 
 It is a diagnostic reference, not the paper's method: the state vector has no raster and no
 sensor noise, and holds the AV's route, which the paper's map does not. If this learner beats
@@ -45,7 +48,7 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
-        [--reader state|map|blobs] [--road-pool CELLS] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
+        [--reader state|map|blobs] [--road-pool CELLS] [--exact-vehicles] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
     python scripts/state_dqn.py --pair A.json B.json
 
@@ -243,10 +246,10 @@ class StatePolicy:
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
                  pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True,
                  reader: str = "state", dtype: torch.dtype = torch.float32, aux: bool = False,
-                 road_pool: int = 4) -> None:
+                 road_pool: int = 4, exact_vehicles: bool = False) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
         self.pose, self.view_box, self.show_time, self.reader, self.dtype = pose, view_box, show_time, reader, dtype
-        self.aux, self.road_pool = aux, road_pool
+        self.aux, self.road_pool, self.exact_vehicles = aux, road_pool, exact_vehicles
         self.latest: NDArray[np.float32] | None = None
 
     def read(self, inp: PolicyInput) -> NDArray[np.float32]:
@@ -255,7 +258,11 @@ class StatePolicy:
         if self.reader == "map":
             return map_features(inp, specs, self.pose, self.show_time, self.aux)
         if self.reader == "blobs":
-            return blob_features(inp.obs, ObservationConfig(), self.k, self.road_pool)
+            x = blob_features(inp.obs, ObservationConfig(), self.k, self.road_pool)
+            if self.exact_vehicles:  # the same rows' layout, from the Scenes (module docstring)
+                x[..., -self.k * PER_NEIGHBOUR:] = features(inp, specs, self.k, 80.0, False, False, MAP_VIEW)[
+                    ..., -self.k * PER_NEIGHBOUR:]
+            return x
         return features(inp, specs, self.k, self.radius, self.route, self.pose, self.view_box, self.show_time)
 
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
@@ -288,7 +295,8 @@ def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], epi
     def make() -> Policy:
         return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
                            view_box=args.view_box, show_time=not args.no_time, reader=args.reader,
-                           dtype=resolve_precision(args.precision, CPU), road_pool=args.road_pool)
+                           dtype=resolve_precision(args.precision, CPU), road_pool=args.road_pool,
+                           exact_vehicles=args.exact_vehicles)
 
     net.eval()
     try:
@@ -320,7 +328,8 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
         store = MapAndPose(capacity, net.shape, N_POSE + (N_AUX if aux else 0))
     elif args.reader == "blobs":
         ego = blob_ego_size(ObservationConfig(), args.road_pool)
-        n_in, what = ego + args.neighbours * PER_NEIGHBOUR, f"vehicles found in the map, road pooled {args.road_pool}"
+        found = "exact vehicles in the map's view" if args.exact_vehicles else "vehicles found in the map"
+        n_in, what = ego + args.neighbours * PER_NEIGHBOUR, f"{found}, road pooled {args.road_pool}"
         net = EgoAttention(ego, PER_NEIGHBOUR, args.neighbours, args.hidden)
         store = LatentStore(capacity, (n_in,))
     else:
@@ -341,7 +350,8 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     transitions = updates = 0
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
                          pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time,
-                         reader=args.reader, dtype=dtype, aux=bool(aux), road_pool=args.road_pool)
+                         reader=args.reader, dtype=dtype, aux=bool(aux), road_pool=args.road_pool,
+                         exact_vehicles=args.exact_vehicles)
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -449,6 +459,9 @@ def main() -> int:
                          "fixed detector finds in the map (module docstring)")
     ap.add_argument("--road-pool", type=int, default=4, metavar="CELLS",
                     help="with --reader blobs: average the road channel over CELLS x CELLS blocks (default 4)")
+    ap.add_argument("--exact-vehicles", action="store_true",
+                    help="with --reader blobs: the exact-state rows of the vehicles inside the map's view in place "
+                         "of those the detector finds")
     ap.add_argument("--aux", type=float, default=0.0, metavar="SCALE",
                     help="with --reader map: after each Q update, also train the reader to predict, from the map, "
                          "the AV's speeds and its 12 nearest vehicles inside the map's view (exact states), by "
@@ -489,6 +502,8 @@ def main() -> int:
     grid = ObservationConfig()
     if args.road_pool < 1 or grid.height % args.road_pool or grid.width % args.road_pool:
         ap.error(f"--road-pool must divide the map's {grid.height} x {grid.width} cells, got {args.road_pool}")
+    if args.exact_vehicles and args.reader != "blobs":
+        ap.error("--exact-vehicles only with --reader blobs")
     if args.view_box is not None:
         try:
             box = tuple(float(v) for v in args.view_box.split(","))

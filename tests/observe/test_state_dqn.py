@@ -128,7 +128,7 @@ def test_each_stored_transition_leads_one_decision_on_across_auto_resets():
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=300, radius=80.0,
                               no_route=False, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1, reader="state", precision="fp32", aux=0.0, road_pool=4)
+                              eval_every=0, eval_episodes=1, reader="state", precision="fp32", aux=0.0, road_pool=4, exact_vehicles=False)
     cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
     _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
     n = replay.added
@@ -205,7 +205,7 @@ def test_the_map_reader_stores_each_transition_one_decision_on_across_auto_reset
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=200, radius=80.0,
                               no_route=True, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1, reader="map", precision="fp32", aux=0.0, road_pool=4)
+                              eval_every=0, eval_episodes=1, reader="map", precision="fp32", aux=0.0, road_pool=4, exact_vehicles=False)
     cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
     _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
     n = replay.added
@@ -315,7 +315,7 @@ def test_the_blob_reader_stores_what_the_detector_finds_in_each_map():
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=200, radius=80.0,
                               no_route=True, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1, reader="blobs", precision="fp32", aux=0.0, road_pool=8)
+                              eval_every=0, eval_episodes=1, reader="blobs", precision="fp32", aux=0.0, road_pool=8, exact_vehicles=False)
     net, replay = MOD["train"](args, ["highway"], DQNConfig(n_step=1, learning_starts=100, batch_size=8), RewardConfig())
     n = replay.added
     ego = MOD["blob_ego_size"](ObservationConfig(), 8)
@@ -325,3 +325,32 @@ def test_the_blob_reader_stores_what_the_detector_finds_in_each_map():
     assert vehicles[:, 0, -1].mean() > 0.5  # highway traffic is in view most of the time
     assert np.all(np.diff(np.hypot(vehicles[..., 0], vehicles[..., 1]) * vehicles[..., -1], axis=1)[vehicles[:, 1:, -1] > 0] >= 0)
     assert net(torch.from_numpy(rows[:3])).shape == (3, 5)
+
+
+def test_exact_vehicles_replace_the_found_ones_and_keep_the_maps_speed_and_road():
+    from latentdrive.config import ObservationConfig
+    from latentdrive.rollout import rollout
+    from latentdrive.vec import make_vec
+
+    vec = make_vec(["merge"], 2, backend="fast")
+    specs = list(vec.simulator.specs)
+    names = np.asarray([s.name for s in specs], dtype=object)
+    found, exact = (MOD["StatePolicy"](_Prefers(1), 6, 80.0, False, reader="blobs", exact_vehicles=e) for e in (False, True))
+    for step, rec in enumerate(rollout(vec, lambda inp: np.ones(inp.obs.shape[:2], dtype=np.int64), seed=2)):
+        if step == 3:
+            inp = MOD["next_input"](rec, names, vec.simulator)
+            a, b = found.read(inp), exact.read(inp)
+            break
+    vec.close()
+    ego = MOD["blob_ego_size"](ObservationConfig(), 4)
+    rows = MOD["features"](inp, specs, 6, 80.0, False, False, MOD["MAP_VIEW"])[..., -6 * 9:]
+    np.testing.assert_array_equal(a[..., :ego], b[..., :ego])
+    np.testing.assert_array_equal(b[..., ego:], rows)
+    assert rows[..., 8].sum() > 0 and not np.array_equal(a[..., ego:], rows)
+
+
+def test_exact_vehicles_need_the_blob_reader(monkeypatch, capsys):
+    monkeypatch.setattr("sys.argv", ["state_dqn.py", "--exact-vehicles"])
+    with pytest.raises(SystemExit) as exit_:
+        MOD["main"]()
+    assert exit_.value.code == 2 and "--exact-vehicles only with --reader blobs" in capsys.readouterr().err
