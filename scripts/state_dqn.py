@@ -33,7 +33,8 @@ exact-state vector's layout, through the same :class:`EgoAttention`. It asks whe
 learned stem or what the map shows holds the map's policies back. ``--exact-vehicles``
 replaces the vehicles found by the exact-state rows of those inside the map's view
 (:data:`MAP_VIEW`; headings, signed velocities, no noise), keeping the map's speed and road:
-what a perfect detector would give this reader.
+what a perfect detector would give this reader. ``--drop velocity,heading,crashed`` zeroes
+those columns of every vehicle row (:data:`DROPPABLE`) to ask which of them matters.
 
 It is a diagnostic reference, not the paper's method: the state vector has no raster and no
 sensor noise, and holds the AV's route, which the paper's map does not. If this learner beats
@@ -48,7 +49,7 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
-        [--reader state|map|blobs] [--road-pool CELLS] [--exact-vehicles] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
+        [--reader state|map|blobs] [--road-pool CELLS] [--exact-vehicles] [--drop NAMES] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
     python scripts/state_dqn.py --pair A.json B.json
 
@@ -246,10 +247,10 @@ class StatePolicy:
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
                  pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True,
                  reader: str = "state", dtype: torch.dtype = torch.float32, aux: bool = False,
-                 road_pool: int = 4, exact_vehicles: bool = False) -> None:
+                 road_pool: int = 4, exact_vehicles: bool = False, drop: tuple[int, ...] = ()) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
         self.pose, self.view_box, self.show_time, self.reader, self.dtype = pose, view_box, show_time, reader, dtype
-        self.aux, self.road_pool, self.exact_vehicles = aux, road_pool, exact_vehicles
+        self.aux, self.road_pool, self.exact_vehicles, self.drop = aux, road_pool, exact_vehicles, list(drop)
         self.latest: NDArray[np.float32] | None = None
 
     def read(self, inp: PolicyInput) -> NDArray[np.float32]:
@@ -262,6 +263,9 @@ class StatePolicy:
             if self.exact_vehicles:  # the same rows' layout, from the Scenes (module docstring)
                 x[..., -self.k * PER_NEIGHBOUR:] = features(inp, specs, self.k, 80.0, False, False, MAP_VIEW)[
                     ..., -self.k * PER_NEIGHBOUR:]
+            if self.drop:
+                rows = x[..., -self.k * PER_NEIGHBOUR:].reshape(*x.shape[:-1], self.k, PER_NEIGHBOUR)
+                rows[..., self.drop] = 0.0
             return x
         return features(inp, specs, self.k, self.radius, self.route, self.pose, self.view_box, self.show_time)
 
@@ -285,6 +289,17 @@ def next_input(rec: StepRecord, names: NDArray[np.object_], simulator: Any) -> P
     return PolicyInput(rec.next_obs, rec.scenes, rec.agents.active, names, simulator)
 
 
+#: ``--drop``'s names for columns of a vehicle row (the exact-state layout; the detector's
+#: rows hold its motion in the same columns, its value and whether it was matched in the
+#: heading's).
+DROPPABLE = {"velocity": (2, 3), "heading": (4, 5), "crashed": (7,)}
+
+
+def drop_columns(names: str) -> tuple[int, ...]:
+    """The vehicle-row columns that ``--drop`` (comma-separated :data:`DROPPABLE` names) zeroes."""
+    return tuple(c for name in filter(None, names.split(",")) for c in DROPPABLE[name])
+
+
 def env_map(args: argparse.Namespace) -> dict[str, Any]:
     """The ``observation`` overrides of the envs: the map is rendered only to be read."""
     return MAP if args.reader in ("map", "blobs") else TINY_MAP
@@ -296,7 +311,7 @@ def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], epi
         return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
                            view_box=args.view_box, show_time=not args.no_time, reader=args.reader,
                            dtype=resolve_precision(args.precision, CPU), road_pool=args.road_pool,
-                           exact_vehicles=args.exact_vehicles)
+                           exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop))
 
     net.eval()
     try:
@@ -351,7 +366,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
                          pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time,
                          reader=args.reader, dtype=dtype, aux=bool(aux), road_pool=args.road_pool,
-                         exact_vehicles=args.exact_vehicles)
+                         exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop))
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -459,6 +474,9 @@ def main() -> int:
                          "fixed detector finds in the map (module docstring)")
     ap.add_argument("--road-pool", type=int, default=4, metavar="CELLS",
                     help="with --reader blobs: average the road channel over CELLS x CELLS blocks (default 4)")
+    ap.add_argument("--drop", default="", metavar="NAMES",
+                    help="with --reader blobs: zero these columns of every vehicle row, comma-separated: "
+                         + ", ".join(DROPPABLE))
     ap.add_argument("--exact-vehicles", action="store_true",
                     help="with --reader blobs: the exact-state rows of the vehicles inside the map's view in place "
                          "of those the detector finds")
@@ -504,6 +522,9 @@ def main() -> int:
         ap.error(f"--road-pool must divide the map's {grid.height} x {grid.width} cells, got {args.road_pool}")
     if args.exact_vehicles and args.reader != "blobs":
         ap.error("--exact-vehicles only with --reader blobs")
+    unknown = [n for n in filter(None, args.drop.split(",")) if n not in DROPPABLE]
+    if unknown or (args.drop and args.reader != "blobs"):
+        ap.error(f"--drop takes {', '.join(DROPPABLE)} with --reader blobs, got {args.drop!r}")
     if args.view_box is not None:
         try:
             box = tuple(float(v) for v in args.view_box.split(","))
