@@ -34,6 +34,12 @@ from latentdrive.observe.velocitymap import AV, HV, MV, RL
 #: Values per vehicle; equal to :data:`latentdrive.observe.state.PER_NEIGHBOUR`, whose
 #: last value is also 1 for a vehicle and 0 for padding.
 PER_VEHICLE = 9
+#: ``ego_motion``'s candidate turns of the observer between two frames, radians (toward its
+#: right positive): a car at 10 m/s on a 20 m roundabout turns 0.5 rad a second.
+TURNS = np.linspace(-0.8, 0.8, 41)
+#: Seconds between two frames of the stack (one policy step at the presets' 1 Hz).
+STEP_S = 1.0
+
 #: Metres within which a vehicle of the newest frame is matched to one of the frame before:
 #: a car 15 m/s faster or slower than the observer, with its position noise, moves about
 #: that far in a step of one second.
@@ -50,9 +56,12 @@ def ego_size(cfg: ObservationConfig, pool: int) -> int:
     return 2 + (cfg.height // pool) * (cfg.width // pool)
 
 
-def blob_features(maps: NDArray[np.float32], cfg: ObservationConfig, k: int, pool: int = 4) -> NDArray[np.float32]:
+def blob_features(maps: NDArray[np.float32], cfg: ObservationConfig, k: int, pool: int = 4,
+                  ego_motion: bool = False) -> NDArray[np.float32]:
     """``(..., ego_size + k·PER_VEHICLE)`` from stacked maps ``(..., 4, T, H, W)`` (T ≥ 2) of
-    geometry ``cfg``; the layout is the module docstring's."""
+    geometry ``cfg``; the layout is the module docstring's. With ``ego_motion`` the older
+    frame's vehicles are first carried into the newest frame's axes by the observer's own
+    motion (:func:`observer_turn`), so that a turning observer does not see the world swing."""
     *lead, c, t, h, w = maps.shape
     if c != 4 or t < 2 or (h, w) != (cfg.height, cfg.width):
         raise ValueError(f"expected maps (..., 4, T >= 2, {cfg.height}, {cfg.width}), got {maps.shape}")
@@ -62,14 +71,58 @@ def blob_features(maps: NDArray[np.float32], cfg: ObservationConfig, k: int, poo
     n_obs = x.shape[0]
     speed = x[:, MV, -2:].reshape(n_obs, 2, -1).max(-1)
     road = x[:, RL, -1].reshape(n_obs, h // pool, pool, w // pool, pool).mean((2, 4)).reshape(n_obs, -1)
-    rows = vehicle_rows(x[:, [HV, AV], -2:], cfg, k)
+    turn = observer_turn(x[:, RL, -2], x[:, RL, -1], speed.mean(1) * cfg.max_speed, cfg) if ego_motion else None
+    rows = vehicle_rows(x[:, [HV, AV], -2:], cfg, k, turn, speed.mean(1) * cfg.max_speed)
     out = np.concatenate([speed, road, rows.reshape(n_obs, -1)], axis=1, dtype=np.float32)
     return out.reshape(*lead, -1)
 
 
-def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int) -> NDArray[np.float32]:
+def _step(turn: NDArray[np.float64], speed: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``(..., 2)`` the observer's move over one step in the older frame's axes, metres: the
+    chord of an arc at ``speed`` m/s turning by ``turn`` radians."""
+    return speed[..., None] * STEP_S * np.stack([np.cos(turn / 2), np.sin(turn / 2)], axis=-1)
+
+
+def _to_newer(p: NDArray[np.float64], turn: NDArray[np.float64], speed: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Points ``(..., 2)`` of the older frame, in the newer frame's axes, as the observer
+    moved by ``turn`` and ``speed`` (broadcast over ``p``'s leading axes)."""
+    q = p - _step(turn, speed)
+    c, s = np.cos(turn)[..., None], np.sin(turn)[..., None]
+    return np.concatenate([c * q[..., :1] + s * q[..., 1:], -s * q[..., :1] + c * q[..., 1:]], axis=-1)
+
+
+def observer_turn(road_old: NDArray[np.float32], road_new: NDArray[np.float32], speed: NDArray[np.float32],
+                  cfg: ObservationConfig) -> NDArray[np.float64]:
+    """``(N,)`` the observer's turn between two frames, radians toward its right: the
+    candidate of :data:`TURNS` under which the older road channel ``(N, H, W)``, carried by
+    that turn and ``speed`` (m/s) into the newer frame, best matches the newer one (least
+    squared difference over every other cell that lands inside the older frame)."""
+    n, h, w = road_new.shape
+    rr, cc = np.meshgrid(np.arange(0, h, 2), np.arange(0, w, 2), indexing="ij")
+    q = np.stack([(cc + 0.5) * cfg.resolution - cfg.behind, (rr + 0.5) * cfg.resolution - 0.5 * h * cfg.resolution],
+                 axis=-1).reshape(-1, 2)  # newer-frame cell centres (M, 2)
+    turn = TURNS[None, :, None]  # (1, C, 1)
+    c, s = np.cos(turn), np.sin(turn)
+    # The newer frame's point q lies at R(turn)·q + step in the older frame's axes.
+    step = _step(TURNS[None, :], speed.astype(np.float64)[:, None])  # (N, C, 2)
+    ox = c * q[None, None, :, 0] - s * q[None, None, :, 1] + step[..., :1]
+    oy = s * q[None, None, :, 0] + c * q[None, None, :, 1] + step[..., 1:]
+    col = np.floor((ox + cfg.behind) / cfg.resolution).astype(np.int64)
+    row = np.floor((oy + 0.5 * h * cfg.resolution) / cfg.resolution).astype(np.int64)
+    inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    old = road_old[np.arange(n)[:, None, None], np.clip(row, 0, h - 1), np.clip(col, 0, w - 1)]
+    new = road_new[:, rr.ravel(), cc.ravel()][:, None, :]
+    err = np.where(inside, (old - new) ** 2, 0.0).sum(-1) / np.maximum(inside.sum(-1), 1)
+    return TURNS[err.argmin(1)]
+
+
+def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn: NDArray[np.float64] | None = None,
+                 speed: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
     """``(N, k, PER_VEHICLE)``: the ``k`` nearest vehicles of the newest frame of ``veh``
-    ``(N, 2 channels HV and AV, 2 frames oldest first, H, W)``, matched to the older frame."""
+    ``(N, 2 channels HV and AV, 2 frames oldest first, H, W)``, matched to the older frame;
+    with ``turn`` and ``speed`` ``(N,)``, the observer's motion between them, the older
+    frame's vehicles are first carried into the newer frame's axes and moved on by the
+    observer's own step, so that a car keeping the observer's speed and course stays put."""
     n_obs, _, _, h, _ = veh.shape
     rows = np.zeros((n_obs, k, PER_VEHICLE), dtype=np.float32)
     labels, n = ndimage.label(veh > 0, _STRUCTURE)
@@ -89,6 +142,11 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int) -> ND
     by = (mean(r) + 0.5) * cfg.resolution - 0.5 * h * cfg.resolution
     value = mean(veh.ravel()[cells])
     new, old = np.flatnonzero(b_frame == 1), np.flatnonzero(b_frame == 0)
+    if turn is not None and speed is not None and len(old):
+        v = speed[b_obs[old]].astype(np.float64)
+        moved = _to_newer(np.stack([bx[old], by[old]], axis=-1), turn[b_obs[old]], v)
+        bx, by = bx.copy(), by.copy()
+        bx[old], by[old] = moved[:, 0] + v * STEP_S, moved[:, 1]
     dx, dy, matched = _match(new, old, b_obs * 2 + b_ch, bx, by)
     # Nearest first within each observation; the first k of each are kept.
     order = np.lexsort((np.hypot(bx[new], by[new]), b_obs[new]))

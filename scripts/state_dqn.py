@@ -33,7 +33,9 @@ exact-state vector's layout, through the same :class:`EgoAttention`. It asks whe
 learned stem or what the map shows holds the map's policies back. ``--exact-vehicles``
 replaces the vehicles found by the exact-state rows of those inside the map's view
 (:data:`MAP_VIEW`; headings, signed velocities, no noise), keeping the map's speed and road:
-what a perfect detector would give this reader. ``--drop velocity,heading,crashed`` zeroes
+what a perfect detector would give this reader. ``--ego-motion`` measures the detector's
+motion after carrying the older frame into the newest frame's axes by the AV's own turn and
+step (``scripts/map_blobs.py``). ``--drop velocity,heading,crashed`` zeroes
 those columns of every vehicle row (:data:`DROPPABLE`) to ask which of them matters.
 
 It is a diagnostic reference, not the paper's method: the state vector has no raster and no
@@ -49,7 +51,7 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
-        [--reader state|map|blobs] [--road-pool CELLS] [--exact-vehicles] [--drop NAMES] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
+        [--reader state|map|blobs] [--road-pool CELLS] [--ego-motion] [--exact-vehicles] [--drop NAMES] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
     python scripts/state_dqn.py --pair A.json B.json
 
@@ -247,10 +249,12 @@ class StatePolicy:
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
                  pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True,
                  reader: str = "state", dtype: torch.dtype = torch.float32, aux: bool = False,
-                 road_pool: int = 4, exact_vehicles: bool = False, drop: tuple[int, ...] = ()) -> None:
+                 road_pool: int = 4, exact_vehicles: bool = False, drop: tuple[int, ...] = (),
+                 ego_motion: bool = False) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
         self.pose, self.view_box, self.show_time, self.reader, self.dtype = pose, view_box, show_time, reader, dtype
         self.aux, self.road_pool, self.exact_vehicles, self.drop = aux, road_pool, exact_vehicles, list(drop)
+        self.ego_motion = ego_motion
         self.latest: NDArray[np.float32] | None = None
 
     def read(self, inp: PolicyInput) -> NDArray[np.float32]:
@@ -259,7 +263,7 @@ class StatePolicy:
         if self.reader == "map":
             return map_features(inp, specs, self.pose, self.show_time, self.aux)
         if self.reader == "blobs":
-            x = blob_features(inp.obs, ObservationConfig(), self.k, self.road_pool)
+            x = blob_features(inp.obs, ObservationConfig(), self.k, self.road_pool, self.ego_motion)
             if self.exact_vehicles:  # the same rows' layout, from the Scenes (module docstring)
                 x[..., -self.k * PER_NEIGHBOUR:] = features(inp, specs, self.k, 80.0, False, False, MAP_VIEW)[
                     ..., -self.k * PER_NEIGHBOUR:]
@@ -311,7 +315,8 @@ def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], epi
         return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
                            view_box=args.view_box, show_time=not args.no_time, reader=args.reader,
                            dtype=resolve_precision(args.precision, CPU), road_pool=args.road_pool,
-                           exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop))
+                           exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop),
+                           ego_motion=args.ego_motion)
 
     net.eval()
     try:
@@ -366,7 +371,8 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
                          pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time,
                          reader=args.reader, dtype=dtype, aux=bool(aux), road_pool=args.road_pool,
-                         exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop))
+                         exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop),
+                         ego_motion=args.ego_motion)
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -477,6 +483,9 @@ def main() -> int:
     ap.add_argument("--drop", default="", metavar="NAMES",
                     help="with --reader blobs: zero these columns of every vehicle row, comma-separated: "
                          + ", ".join(DROPPABLE))
+    ap.add_argument("--ego-motion", action="store_true",
+                    help="with --reader blobs: carry the older frame's vehicles into the newest frame's axes by "
+                         "the AV's own turn (found by matching the road) and step before measuring their motion")
     ap.add_argument("--exact-vehicles", action="store_true",
                     help="with --reader blobs: the exact-state rows of the vehicles inside the map's view in place "
                          "of those the detector finds")
@@ -520,8 +529,8 @@ def main() -> int:
     grid = ObservationConfig()
     if args.road_pool < 1 or grid.height % args.road_pool or grid.width % args.road_pool:
         ap.error(f"--road-pool must divide the map's {grid.height} x {grid.width} cells, got {args.road_pool}")
-    if args.exact_vehicles and args.reader != "blobs":
-        ap.error("--exact-vehicles only with --reader blobs")
+    if (args.exact_vehicles or args.ego_motion) and args.reader != "blobs":
+        ap.error("--exact-vehicles and --ego-motion only with --reader blobs")
     unknown = [n for n in filter(None, args.drop.split(",")) if n not in DROPPABLE]
     if unknown or (args.drop and args.reader != "blobs"):
         ap.error(f"--drop takes {', '.join(DROPPABLE)} with --reader blobs, got {args.drop!r}")

@@ -101,3 +101,54 @@ def test_on_a_drawn_map_the_vehicles_are_found_where_the_scene_puts_them():
         break
     vec.close()
     assert len(gaps) >= 4 and np.mean(np.asarray(gaps) < 1.5) >= 0.75
+
+
+def _road(pose: tuple[float, float, float]) -> np.ndarray:
+    """A road of two crossing bands drawn in the frame of an observer at world pose
+    (x, y, heading toward +y), ``(H, W)``: the same geometry in the map's axes."""
+    x0, y0, th = pose
+    cols, rows = np.meshgrid(np.arange(CFG.width), np.arange(CFG.height))
+    lx = (cols + 0.5) * CFG.resolution - CFG.behind
+    ly = (rows + 0.5) * CFG.resolution - 0.5 * CFG.height * CFG.resolution
+    wx = x0 + np.cos(th) * lx - np.sin(th) * ly
+    wy = y0 + np.sin(th) * lx + np.cos(th) * ly
+    return ((np.abs(wy) < 6.0) | (np.abs(wx - 30.0) < 4.0)).astype(np.float32)
+
+
+def test_the_observers_turn_is_found_by_matching_the_road():
+    speed, turn = 10.0, 0.3
+    step = MOD["_step"](np.array(turn), np.array(speed))
+    old, new = _road((0.0, 0.0, 0.0)), _road((float(step[0]), float(step[1]), turn))
+    found = MOD["observer_turn"](old[None], new[None], np.array([speed], dtype=np.float32), CFG)
+    assert abs(found[0] - turn) <= 0.041  # one step of the candidate grid
+    assert abs(MOD["observer_turn"](old[None], old[None], np.array([0.0], dtype=np.float32), CFG)[0]) < 1e-9
+
+
+def test_with_the_observers_motion_a_car_keeping_its_course_has_the_relative_velocity_of_the_scene():
+    # The observer turns by 0.3 rad at 10 m/s; a car drives along world +x at 12 m/s. Its
+    # velocity relative to the observer, in the newer frame's axes, is R(-0.3)·(12, 0) - (10, 0).
+    speed, turn = 10.0, 0.3
+    ox, oy = MOD["_step"](np.array(turn), np.array(speed))
+    car_old, car_new = np.array([20.0, 4.5]), np.array([32.0, 4.5])
+
+    def local(p, pose):
+        d = p - np.array(pose[:2])
+        c, s = np.cos(pose[2]), np.sin(pose[2])
+        return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
+
+    m = _maps()
+    for frame, pose, car in ((OLD, (0.0, 0.0, 0.0), car_old), (NEW, (float(ox), float(oy), turn), car_new)):
+        lx, ly = local(car, pose)
+        col = round(float((lx + CFG.behind) / CFG.resolution - 0.5))
+        row = round(float((ly + 0.5 * CFG.height * CFG.resolution) / CFG.resolution - 0.5))
+        m[0, HV, frame, row - 1: row + 1, col - 1: col + 2] = 1.0
+        m[0, RL, frame] = _road(pose)
+        m[0, MV, frame, 15:17, 20:23] = speed / CFG.max_speed
+    c, s = np.cos(turn), np.sin(turn)
+    want = np.array([c * 12.0, -s * 12.0]) - np.array([speed, 0.0])
+    ego = MOD["ego_size"](CFG, 4)
+    moved = MOD["blob_features"](m, CFG, 1, ego_motion=True)[0, ego:]
+    plain = MOD["blob_features"](m, CFG, 1)[0, ego:]
+    assert moved[5] == 1.0
+    np.testing.assert_allclose(moved[2:4] * 20, want, atol=1.6)  # cells of 1.5 m, one turn step
+    assert np.abs(plain[2:4] * 20 - want).max() > 3.0  # without it the world seems to swing
