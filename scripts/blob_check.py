@@ -10,7 +10,7 @@ matched to the frame before, and, over those, the median and 90th percentile of 
 of its motion against the exact velocity difference (m/s), beside the spread of the exact
 values. Usage::
 
-    python scripts/blob_check.py [--ego-motion] [--envs 8] [--steps 80] [--seed 11] [--within 3]
+    python scripts/blob_check.py [--ego-motion] [--frames 2] [--envs 8] [--steps 80] [--seed 11] [--within 3]
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ _BLOBS = runpy.run_path(str(_HERE / "map_blobs.py"), run_name="map_blobs")
 K = 16
 
 
-def pairs(scenario: str, envs: int, steps: int, seed: int, within: float, ego_motion: bool) -> tuple[int, int, np.ndarray]:
+def pairs(scenario: str, envs: int, steps: int, seed: int, within: float, ego_motion: bool,
+          frames: int = 2) -> tuple[int, int, np.ndarray]:
     """The exact vehicles seen, those found, and one row per pair: distance, matched,
     found motion (x, y), exact velocity difference (x, y)."""
     cfg = ObservationConfig()
@@ -48,7 +49,7 @@ def pairs(scenario: str, envs: int, steps: int, seed: int, within: float, ego_mo
             break
         inp = _STATE["next_input"](rec, names, vec.simulator)
         exact = _STATE["features"](inp, specs, K, 80.0, False, False, _STATE["MAP_VIEW"])[..., -K * PER_NEIGHBOUR:]
-        found = _BLOBS["blob_features"](rec.next_obs, cfg, K, ego_motion=ego_motion)[..., ego:]
+        found = _BLOBS["blob_features"](rec.next_obs, cfg, K, ego_motion=ego_motion, frames=frames)[..., ego:]
         for e, a in zip(*np.nonzero(rec.agents.active), strict=True):
             s = exact[e, a].reshape(K, PER_NEIGHBOUR)
             b = found[e, a].reshape(K, PER_NEIGHBOUR)
@@ -67,16 +68,17 @@ def pairs(scenario: str, envs: int, steps: int, seed: int, within: float, ego_mo
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--ego-motion", action="store_true", help="the detector's --ego-motion (scripts/map_blobs.py)")
+    ap.add_argument("--frames", type=int, default=2, help="the detector's frames (scripts/map_blobs.py)")
     ap.add_argument("--envs", type=int, default=8)
     ap.add_argument("--steps", type=int, default=80, help="decisions per environment")
     ap.add_argument("--seed", type=int, default=11)
     ap.add_argument("--within", type=float, default=3.0, help="metres")
     args = ap.parse_args()
-    if min(args.envs, args.steps) < 1 or args.within <= 0:
-        ap.error("--envs and --steps must be at least 1 and --within above 0")
+    if min(args.envs, args.steps) < 1 or args.within <= 0 or not 2 <= args.frames <= ObservationConfig().frames:
+        ap.error(f"--envs and --steps must be at least 1, --within above 0, --frames 2 to {ObservationConfig().frames}")
     print("scenario      exact  found  paired  median m  matched  motion error m/s: median  90%   exact spread (sd x, y)")
     for scenario in SCENARIOS:
-        n_exact, n_found, p = pairs(scenario, args.envs, args.steps, args.seed, args.within, args.ego_motion)
+        n_exact, n_found, p = pairs(scenario, args.envs, args.steps, args.seed, args.within, args.ego_motion, args.frames)
         m = p[p[:, 1] > 0]
         err = np.hypot(m[:, 2] - m[:, 4], m[:, 3] - m[:, 5])
         print(f"{scenario:12s} {n_exact:6d} {n_found:6d} {len(p) / max(n_exact, 1):7.2f} {np.median(p[:, 0]):9.2f} "

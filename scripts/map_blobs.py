@@ -40,6 +40,8 @@ TURNS = np.linspace(-0.8, 0.8, 41)
 #: Seconds between two frames of the stack (one policy step at the presets' 1 Hz).
 STEP_S = 1.0
 
+#: Metres within which a track with a fitted line takes the vehicle nearest its prediction.
+TRACK_GATE = 6.0
 #: Metres within which a vehicle of the newest frame is matched to one of the frame before:
 #: a car 15 m/s faster or slower than the observer, with its position noise, moves about
 #: that far in a step of one second.
@@ -57,22 +59,29 @@ def ego_size(cfg: ObservationConfig, pool: int) -> int:
 
 
 def blob_features(maps: NDArray[np.float32], cfg: ObservationConfig, k: int, pool: int = 4,
-                  ego_motion: bool = False) -> NDArray[np.float32]:
+                  ego_motion: bool = False, frames: int = 2) -> NDArray[np.float32]:
     """``(..., ego_size + k·PER_VEHICLE)`` from stacked maps ``(..., 4, T, H, W)`` (T ≥ 2) of
     geometry ``cfg``; the layout is the module docstring's. With ``ego_motion`` the older
     frame's vehicles are first carried into the newest frame's axes by the observer's own
-    motion (:func:`observer_turn`), so that a turning observer does not see the world swing."""
+    motion (:func:`observer_turn`), so that a turning observer does not see the world swing.
+    ``frames`` (2 to T) is how many of the newest frames the tracker follows each vehicle
+    through; its motion is then the least-squares slope of its places (:func:`vehicle_rows`)."""
     *lead, c, t, h, w = maps.shape
     if c != 4 or t < 2 or (h, w) != (cfg.height, cfg.width):
         raise ValueError(f"expected maps (..., 4, T >= 2, {cfg.height}, {cfg.width}), got {maps.shape}")
     if pool < 1 or h % pool or w % pool:
         raise ValueError(f"pool must divide the map's {h} x {w} cells, got {pool}")
+    if not 2 <= frames <= t:
+        raise ValueError(f"frames must be 2 to the stack's {t}, got {frames}")
     x = maps.reshape(-1, 4, t, h, w)
     n_obs = x.shape[0]
     speed = x[:, MV, -2:].reshape(n_obs, 2, -1).max(-1)
     road = x[:, RL, -1].reshape(n_obs, h // pool, pool, w // pool, pool).mean((2, 4)).reshape(n_obs, -1)
-    turn = observer_turn(x[:, RL, -2], x[:, RL, -1], speed.mean(1) * cfg.max_speed, cfg) if ego_motion else None
-    rows = vehicle_rows(x[:, [HV, AV], -2:], cfg, k, turn, speed.mean(1) * cfg.max_speed)
+    own = x[:, MV, -frames:].reshape(n_obs, frames, -1).max(-1) * cfg.max_speed
+    step_speed = 0.5 * (own[:, :-1] + own[:, 1:])  # (n_obs, frames - 1), m/s
+    turn = (np.stack([observer_turn(x[:, RL, j - frames], x[:, RL, j - frames + 1], step_speed[:, j], cfg)
+                      for j in range(frames - 1)], axis=1) if ego_motion else None)
+    rows = vehicle_rows(x[:, [HV, AV], -frames:], cfg, k, turn, step_speed)
     out = np.concatenate([speed, road, rows.reshape(n_obs, -1)], axis=1, dtype=np.float32)
     return out.reshape(*lead, -1)
 
@@ -119,11 +128,18 @@ def observer_turn(road_old: NDArray[np.float32], road_new: NDArray[np.float32], 
 def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn: NDArray[np.float64] | None = None,
                  speed: NDArray[np.float32] | None = None) -> NDArray[np.float32]:
     """``(N, k, PER_VEHICLE)``: the ``k`` nearest vehicles of the newest frame of ``veh``
-    ``(N, 2 channels HV and AV, 2 frames oldest first, H, W)``, matched to the older frame;
-    with ``turn`` and ``speed`` ``(N,)``, the observer's motion between them, the older
-    frame's vehicles are first carried into the newer frame's axes and moved on by the
-    observer's own step, so that a car keeping the observer's speed and course stays put."""
-    n_obs, _, _, h, _ = veh.shape
+    ``(N, 2 channels HV and AV, F frames oldest first, H, W)``, each followed back through
+    the older frames. With ``turn`` and ``speed`` ``(N, F - 1)``, the observer's motion
+    between consecutive frames, the older frames' vehicles are first carried into the
+    newest frame's axes and moved on by the observer's own steps, so that a car keeping the
+    observer's speed and course stays put.
+
+    Following: in each older frame, the vehicle of the same channel nearest the place the
+    track predicts (its last place until it has two, then its fitted line), within
+    :data:`GATE` metres until it has two places and :data:`TRACK_GATE` after; a frame
+    without one is skipped. The motion is the least-squares slope of the track's places
+    against time (with two frames, the displacement between them), metres per step."""
+    n_obs, _, f, h, _ = veh.shape
     rows = np.zeros((n_obs, k, PER_VEHICLE), dtype=np.float32)
     labels, n = ndimage.label(veh > 0, _STRUCTURE)
     if n == 0:
@@ -141,13 +157,14 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
     bx = (mean(col) + 0.5) * cfg.resolution - cfg.behind
     by = (mean(r) + 0.5) * cfg.resolution - 0.5 * h * cfg.resolution
     value = mean(veh.ravel()[cells])
-    new, old = np.flatnonzero(b_frame == 1), np.flatnonzero(b_frame == 0)
-    if turn is not None and speed is not None and len(old):
-        v = speed[b_obs[old]].astype(np.float64)
-        moved = _to_newer(np.stack([bx[old], by[old]], axis=-1), turn[b_obs[old]], v)
-        bx, by = bx.copy(), by.copy()
-        bx[old], by[old] = moved[:, 0] + v * STEP_S, moved[:, 1]
-    dx, dy, matched = _match(new, old, b_obs * 2 + b_ch, bx, by)
+    if turn is not None and speed is not None:
+        for j in range(f - 1):  # blobs of frames up to j, in frame j's axes, into frame j + 1's
+            sel = np.flatnonzero(b_frame <= j)
+            v = speed[b_obs[sel], j].astype(np.float64)
+            moved = _to_newer(np.stack([bx[sel], by[sel]], axis=-1), turn[b_obs[sel], j], v)
+            bx[sel], by[sel] = moved[:, 0] + v * STEP_S, moved[:, 1]
+    new = np.flatnonzero(b_frame == f - 1)
+    dx, dy, matched = _track(new, b_frame, b_obs * 2 + b_ch, bx, by, f)
     # Nearest first within each observation; the first k of each are kept.
     order = np.lexsort((np.hypot(bx[new], by[new]), b_obs[new]))
     owner = b_obs[new][order]
@@ -159,25 +176,60 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
     return rows
 
 
-def _match(new: NDArray[np.int64], old: NDArray[np.int64], group: NDArray[np.int64], bx: NDArray[np.float64],
-           by: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
-    """For blobs ``new``: the displacement (x, y) from the nearest blob of ``old`` in the
-    same ``group`` within :data:`GATE`, and 1 where there is one (0 and 0 elsewhere)."""
-    dx, dy, matched = np.zeros(len(new)), np.zeros(len(new)), np.zeros(len(new))
-    if len(new) == 0 or len(old) == 0:
-        return dx, dy, matched
-    old = old[np.argsort(group[old], kind="stable")]
-    lo = np.searchsorted(group[old], group[new], "left")
-    hi = np.searchsorted(group[old], group[new], "right")
+def _track(new: NDArray[np.int64], b_frame: NDArray[np.int64], group: NDArray[np.int64], bx: NDArray[np.float64],
+           by: NDArray[np.float64], f: int) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """For blobs ``new`` of the newest of ``f`` frames: the slope (x, y) of the places of
+    each one's track (:func:`vehicle_rows`), and 1 where the track holds an older place
+    (0, 0 and 0 elsewhere)."""
+    x0, y0 = bx[new], by[new]
+    # Least-squares sums over each track's places; time in steps, 0 at the newest frame.
+    npts, st, stt = np.ones(len(new)), np.zeros(len(new)), np.zeros(len(new))
+    sx, sy, stx, sty = x0.copy(), y0.copy(), np.zeros(len(new)), np.zeros(len(new))
+    lastx, lasty = x0.copy(), y0.copy()
+    ux, uy = np.zeros(len(new)), np.zeros(len(new))
+    for j in range(f - 2, -1, -1):
+        t = float(j - (f - 1))
+        line = npts >= 2
+        qx, qy = np.where(line, x0 + ux * t, lastx), np.where(line, y0 + uy * t, lasty)
+        idx = _nearest(qx, qy, group[new], np.flatnonzero(b_frame == j), group, bx, by,
+                       np.where(line, TRACK_GATE, GATE))
+        ok = idx >= 0
+        px, py = bx[idx[ok]], by[idx[ok]]
+        npts[ok] += 1
+        st[ok] += t
+        stt[ok] += t * t
+        sx[ok] += px
+        sy[ok] += py
+        stx[ok] += t * px
+        sty[ok] += t * py
+        lastx[ok], lasty[ok] = px, py
+        fit = npts >= 2
+        var = stt[fit] - st[fit] ** 2 / npts[fit]
+        ux[fit] = (stx[fit] - st[fit] * sx[fit] / npts[fit]) / var
+        uy[fit] = (sty[fit] - st[fit] * sy[fit] / npts[fit]) / var
+    return ux / STEP_S, uy / STEP_S, (npts >= 2).astype(np.float64)
+
+
+def _nearest(qx: NDArray[np.float64], qy: NDArray[np.float64], qgroup: NDArray[np.int64], cand: NDArray[np.int64],
+             group: NDArray[np.int64], bx: NDArray[np.float64], by: NDArray[np.float64],
+             gate: NDArray[np.float64]) -> NDArray[np.int64]:
+    """For each query place ``(qx, qy)`` of group ``qgroup``: the blob of ``cand`` in the same
+    group nearest it within its ``gate`` metres, or -1."""
+    out = np.full(len(qx), -1, dtype=np.int64)
+    if len(qx) == 0 or len(cand) == 0:
+        return out
+    cand = cand[np.argsort(group[cand], kind="stable")]
+    lo = np.searchsorted(group[cand], qgroup, "left")
+    hi = np.searchsorted(group[cand], qgroup, "right")
     span = int((hi - lo).max())
     if span == 0:
-        return dx, dy, matched
-    cand = lo[:, None] + np.arange(span)
-    valid = cand < hi[:, None]
-    cand = old[np.where(valid, cand, 0)]
-    ddx, ddy = bx[new][:, None] - bx[cand], by[new][:, None] - by[cand]
-    dist2 = np.where(valid, ddx**2 + ddy**2, np.inf)
+        return out
+    slots = lo[:, None] + np.arange(span)
+    valid = slots < hi[:, None]
+    ids = cand[np.where(valid, slots, 0)]
+    dist2 = np.where(valid, (qx[:, None] - bx[ids]) ** 2 + (qy[:, None] - by[ids]) ** 2, np.inf)
     best = dist2.argmin(1)
-    pick = np.arange(len(new))
-    ok = dist2[pick, best] <= GATE**2
-    return np.where(ok, ddx[pick, best], 0.0), np.where(ok, ddy[pick, best], 0.0), ok.astype(np.float64)
+    pick = np.arange(len(qx))
+    ok = dist2[pick, best] <= gate**2
+    out[ok] = ids[pick, best][ok]
+    return out

@@ -35,7 +35,8 @@ replaces the vehicles found by the exact-state rows of those inside the map's vi
 (:data:`MAP_VIEW`; headings, signed velocities, no noise), keeping the map's speed and road:
 what a perfect detector would give this reader. ``--ego-motion`` measures the detector's
 motion after carrying the older frame into the newest frame's axes by the AV's own turn and
-step (``scripts/map_blobs.py``). ``--drop velocity,heading,crashed`` zeroes
+step (``scripts/map_blobs.py``); ``--track-frames F`` follows each vehicle through the F
+newest frames and fits its motion. ``--drop velocity,heading,crashed`` zeroes
 those columns of every vehicle row (:data:`DROPPABLE`) to ask which of them matters.
 
 It is a diagnostic reference, not the paper's method: the state vector has no raster and no
@@ -51,7 +52,7 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
-        [--reader state|map|blobs] [--road-pool CELLS] [--ego-motion] [--exact-vehicles] [--drop NAMES] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
+        [--reader state|map|blobs] [--road-pool CELLS] [--ego-motion] [--track-frames F] [--exact-vehicles] [--drop NAMES] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
     python scripts/state_dqn.py --pair A.json B.json
 
@@ -250,11 +251,11 @@ class StatePolicy:
                  pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True,
                  reader: str = "state", dtype: torch.dtype = torch.float32, aux: bool = False,
                  road_pool: int = 4, exact_vehicles: bool = False, drop: tuple[int, ...] = (),
-                 ego_motion: bool = False) -> None:
+                 ego_motion: bool = False, frames: int = 2) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
         self.pose, self.view_box, self.show_time, self.reader, self.dtype = pose, view_box, show_time, reader, dtype
         self.aux, self.road_pool, self.exact_vehicles, self.drop = aux, road_pool, exact_vehicles, list(drop)
-        self.ego_motion = ego_motion
+        self.ego_motion, self.frames = ego_motion, frames
         self.latest: NDArray[np.float32] | None = None
 
     def read(self, inp: PolicyInput) -> NDArray[np.float32]:
@@ -263,7 +264,7 @@ class StatePolicy:
         if self.reader == "map":
             return map_features(inp, specs, self.pose, self.show_time, self.aux)
         if self.reader == "blobs":
-            x = blob_features(inp.obs, ObservationConfig(), self.k, self.road_pool, self.ego_motion)
+            x = blob_features(inp.obs, ObservationConfig(), self.k, self.road_pool, self.ego_motion, self.frames)
             if self.exact_vehicles:  # the same rows' layout, from the Scenes (module docstring)
                 x[..., -self.k * PER_NEIGHBOUR:] = features(inp, specs, self.k, 80.0, False, False, MAP_VIEW)[
                     ..., -self.k * PER_NEIGHBOUR:]
@@ -316,7 +317,7 @@ def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], epi
                            view_box=args.view_box, show_time=not args.no_time, reader=args.reader,
                            dtype=resolve_precision(args.precision, CPU), road_pool=args.road_pool,
                            exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop),
-                           ego_motion=args.ego_motion)
+                           ego_motion=args.ego_motion, frames=args.track_frames)
 
     net.eval()
     try:
@@ -372,7 +373,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
                          pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time,
                          reader=args.reader, dtype=dtype, aux=bool(aux), road_pool=args.road_pool,
                          exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop),
-                         ego_motion=args.ego_motion)
+                         ego_motion=args.ego_motion, frames=args.track_frames)
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -486,6 +487,9 @@ def main() -> int:
     ap.add_argument("--ego-motion", action="store_true",
                     help="with --reader blobs: carry the older frame's vehicles into the newest frame's axes by "
                          "the AV's own turn (found by matching the road) and step before measuring their motion")
+    ap.add_argument("--track-frames", type=int, default=2, metavar="F",
+                    help="with --reader blobs: follow each vehicle back through the map's F newest frames and "
+                         "take its motion as the slope of its places (default 2: the displacement between two)")
     ap.add_argument("--exact-vehicles", action="store_true",
                     help="with --reader blobs: the exact-state rows of the vehicles inside the map's view in place "
                          "of those the detector finds")
@@ -529,8 +533,10 @@ def main() -> int:
     grid = ObservationConfig()
     if args.road_pool < 1 or grid.height % args.road_pool or grid.width % args.road_pool:
         ap.error(f"--road-pool must divide the map's {grid.height} x {grid.width} cells, got {args.road_pool}")
-    if (args.exact_vehicles or args.ego_motion) and args.reader != "blobs":
-        ap.error("--exact-vehicles and --ego-motion only with --reader blobs")
+    if (args.exact_vehicles or args.ego_motion or args.track_frames != 2) and args.reader != "blobs":
+        ap.error("--exact-vehicles, --ego-motion and --track-frames only with --reader blobs")
+    if not 2 <= args.track_frames <= grid.frames:
+        ap.error(f"--track-frames must be 2 to the map's {grid.frames} frames, got {args.track_frames}")
     unknown = [n for n in filter(None, args.drop.split(",")) if n not in DROPPABLE]
     if unknown or (args.drop and args.reader != "blobs"):
         ap.error(f"--drop takes {', '.join(DROPPABLE)} with --reader blobs, got {args.drop!r}")

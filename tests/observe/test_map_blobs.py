@@ -161,3 +161,17 @@ def test_the_check_pairs_found_vehicles_with_exact_ones_nearby():
     assert (p[:, 0] <= 3.0).all() and np.median(p[:, 0]) < 1.5
     matched = p[p[:, 1] > 0]
     assert len(matched) and np.median(np.hypot(*(matched[:, 2:4] - matched[:, 4:6]).T)) < 3.0
+
+
+def test_a_track_through_four_frames_skips_a_missed_frame_and_follows_its_line():
+    m = np.zeros((1, 4, 4, CFG.height, CFG.width), dtype=np.float32)
+    for frame, col in ((0, 20), (1, 22), (3, 26)):  # two cells (3 m) a step; missed in frame 2
+        m[0, HV, frame, 8:10, col:col + 2] = 1.0
+    m[0, HV, 0, 8:10, 23:25] = 1.0  # in the oldest frame, a car nearer its last place (1.5 m) than its line's
+    ego = MOD["ego_size"](CFG, 4)
+    four = MOD["blob_features"](m, CFG, 1, frames=4)[0, ego:]
+    np.testing.assert_allclose(four[[2, 3, 5]], [3.0 / 20, 0.0, 1.0], atol=1e-6)
+    two = MOD["blob_features"](m, CFG, 1, frames=2)[0, ego:]
+    assert two[5] == 0.0 and two[2] == 0.0  # frame 2 holds no car: nothing to match
+    with pytest.raises(ValueError, match="frames must be 2 to the stack's 4"):
+        MOD["blob_features"](m, CFG, 1, frames=5)
