@@ -81,9 +81,13 @@ def main() -> int:
         n_exact, n_found, p = pairs(scenario, args.envs, args.steps, args.seed, args.within, args.ego_motion, args.frames)
         m = p[p[:, 1] > 0]
         err = np.hypot(m[:, 2] - m[:, 4], m[:, 3] - m[:, 5])
-        print(f"{scenario:12s} {n_exact:6d} {n_found:6d} {len(p) / max(n_exact, 1):7.2f} {np.median(p[:, 0]):9.2f} "
-              f"{len(m) / max(len(p), 1):8.2f} {np.median(err):24.1f} {np.quantile(err, 0.9):5.1f} "
-              f"{m[:, 4].std():13.1f}, {m[:, 5].std():.1f}")
+        line = f"{scenario:12s} {n_exact:6d} {n_found:6d} {len(p) / max(n_exact, 1):7.2f} "
+        line += f"{np.median(p[:, 0]):9.2f} {len(m) / len(p):8.2f} " if len(p) else f"{'-':>9s} {'-':>8s} "
+        if len(m):
+            line += f"{np.median(err):24.1f} {np.quantile(err, 0.9):5.1f} {m[:, 4].std():13.1f}, {m[:, 5].std():.1f}"
+        else:
+            line += f"{'-':>24s} {'-':>5s} {'-':>13s}"
+        print(line)
     return 0
 
 

@@ -11,7 +11,8 @@ frame is matched to the nearest vehicle of the same channel in the frame before 
 observer over one policy step (the map's frames are one step apart), signed, which the
 map's values alone do not give. Two cars whose footprints touch are one blob; sensor
 noise moves the centres and drops vehicles from frames, as it does for any reader of the
-map.
+map. At an episode's start the stack repeats its first frame, so every vehicle is matched
+with no motion until the frames differ.
 
 Each observation becomes the same layout as :func:`latentdrive.observe.state.state_features`
 so that the ego-attention network of ``scripts/state_copy.py`` reads it unchanged: the AV's
@@ -121,8 +122,11 @@ def observer_turn(road_old: NDArray[np.float32], road_new: NDArray[np.float32], 
     inside = (col >= 0) & (col < w) & (row >= 0) & (row < h)
     old = road_old[np.arange(n)[:, None, None], np.clip(row, 0, h - 1), np.clip(col, 0, w - 1)]
     new = road_new[:, rr.ravel(), cc.ravel()][:, None, :]
-    err = np.where(inside, (old - new) ** 2, 0.0).sum(-1) / np.maximum(inside.sum(-1), 1)
-    return TURNS[err.argmin(1)]
+    seen = inside.sum(-1)
+    err = np.where(seen > 0, np.where(inside, (old - new) ** 2, 0.0).sum(-1) / np.maximum(seen, 1), np.inf)
+    # Least error first; among equals (a uniform road, nothing seen) the smallest turn.
+    order = np.lexsort((np.broadcast_to(np.abs(TURNS), err.shape), err), axis=1)
+    return TURNS[order[:, 0]]
 
 
 def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn: NDArray[np.float64] | None = None,
@@ -162,7 +166,11 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
             sel = np.flatnonzero(b_frame <= j)
             v = speed[b_obs[sel], j].astype(np.float64)
             moved = _to_newer(np.stack([bx[sel], by[sel]], axis=-1), turn[b_obs[sel], j], v)
-            bx[sel], by[sel] = moved[:, 0] + v * STEP_S, moved[:, 1]
+            bx[sel], by[sel] = moved[:, 0], moved[:, 1]
+        # The places now lie still in the newest frame's axes; moving each on by the
+        # observer's newest velocity for the steps it lies back makes their slope the velocity
+        # relative to the observer now, as the exact-state rows hold it.
+        bx += speed[b_obs, f - 2].astype(np.float64) * (f - 1 - b_frame) * STEP_S
     new = np.flatnonzero(b_frame == f - 1)
     dx, dy, matched = _track(new, b_frame, b_obs * 2 + b_ch, bx, by, f)
     # Nearest first within each observation; the first k of each are kept.
@@ -183,14 +191,17 @@ def _track(new: NDArray[np.int64], b_frame: NDArray[np.int64], group: NDArray[np
     (0, 0 and 0 elsewhere)."""
     x0, y0 = bx[new], by[new]
     # Least-squares sums over each track's places; time in steps, 0 at the newest frame.
-    npts, st, stt = np.ones(len(new)), np.zeros(len(new)), np.zeros(len(new))
+    npts, st, stt = np.ones(len(new)), np.zeros(len(new)), np.zeros(len(new))  # places, Σt, Σt²
     sx, sy, stx, sty = x0.copy(), y0.copy(), np.zeros(len(new)), np.zeros(len(new))
     lastx, lasty = x0.copy(), y0.copy()
     ux, uy = np.zeros(len(new)), np.zeros(len(new))
     for j in range(f - 2, -1, -1):
         t = float(j - (f - 1))
         line = npts >= 2
-        qx, qy = np.where(line, x0 + ux * t, lastx), np.where(line, y0 + uy * t, lasty)
+        # On the fitted line (through the places' mean time and place) once there are two.
+        tbar = st / npts
+        qx = np.where(line, sx / npts + ux * (t - tbar), lastx)
+        qy = np.where(line, sy / npts + uy * (t - tbar), lasty)
         idx = _nearest(qx, qy, group[new], np.flatnonzero(b_frame == j), group, bx, by,
                        np.where(line, TRACK_GATE, GATE))
         ok = idx >= 0

@@ -31,8 +31,8 @@ default map's two newest frames (place, motion over the last step, value, size),
 ``--neighbours`` nearest, and the road channel averaged over ``--road-pool`` cells, in the
 exact-state vector's layout, through the same :class:`EgoAttention`. It asks whether the
 learned stem or what the map shows holds the map's policies back. ``--exact-vehicles``
-replaces the vehicles found by the exact-state rows of those inside the map's view
-(:data:`MAP_VIEW`; headings, signed velocities, no noise), keeping the map's speed and road:
+replaces the vehicles found by the exact-state rows of the nearest inside the map's view
+(:func:`exact_in_view`; headings, signed velocities, no noise), keeping the map's speed and road:
 what a perfect detector would give this reader. ``--ego-motion`` measures the detector's
 motion after carrying the older frame into the newest frame's axes by the AV's own turn and
 step (``scripts/map_blobs.py``); ``--track-frames F`` follows each vehicle through the F
@@ -266,8 +266,7 @@ class StatePolicy:
         if self.reader == "blobs":
             x = blob_features(inp.obs, ObservationConfig(), self.k, self.road_pool, self.ego_motion, self.frames)
             if self.exact_vehicles:  # the same rows' layout, from the Scenes (module docstring)
-                x[..., -self.k * PER_NEIGHBOUR:] = features(inp, specs, self.k, 80.0, False, False, MAP_VIEW)[
-                    ..., -self.k * PER_NEIGHBOUR:]
+                x[..., -self.k * PER_NEIGHBOUR:] = exact_in_view(inp, specs, self.k).reshape(*x.shape[:-1], -1)
             if self.drop:
                 rows = x[..., -self.k * PER_NEIGHBOUR:].reshape(*x.shape[:-1], self.k, PER_NEIGHBOUR)
                 rows[..., self.drop] = 0.0
@@ -294,10 +293,23 @@ def next_input(rec: StepRecord, names: NDArray[np.object_], simulator: Any) -> P
     return PolicyInput(rec.next_obs, rec.scenes, rec.agents.active, names, simulator)
 
 
-#: ``--drop``'s names for columns of a vehicle row (the exact-state layout; the detector's
-#: rows hold its motion in the same columns, its value and whether it was matched in the
-#: heading's).
+#: ``--drop``'s names for columns of a vehicle row (the exact-state layout). The detector's
+#: rows hold its motion in the velocity's columns and other values in the others, so
+#: ``heading`` and ``crashed`` need ``--exact-vehicles``.
 DROPPABLE = {"velocity": (2, 3), "heading": (4, 5), "crashed": (7,)}
+#: How many vehicles :func:`exact_in_view` looks through for those inside the view.
+IN_VIEW_SEARCH = 64
+
+
+def exact_in_view(inp: PolicyInput, specs: list[Any], k: int) -> NDArray[np.float32]:
+    """``(num_envs, n_av, k, PER_NEIGHBOUR)``: the exact-state rows of the ``k`` nearest
+    vehicles inside :data:`MAP_VIEW` (of the :data:`IN_VIEW_SEARCH` nearest within 80 m,
+    which reaches every corner of the view), nearest first, zero rows where fewer."""
+    x = features(inp, specs, IN_VIEW_SEARCH, 80.0, False, False, MAP_VIEW)
+    rows = x[..., -IN_VIEW_SEARCH * PER_NEIGHBOUR:].reshape(*x.shape[:2], IN_VIEW_SEARCH, PER_NEIGHBOUR)
+    # A stable sort of "absent" keeps the present rows first and in their nearest-first order.
+    order = np.argsort(rows[..., -1] < 0.5, axis=-1, kind="stable")[..., :k]
+    return np.take_along_axis(rows, order[..., None], axis=2)
 
 
 def drop_columns(names: str) -> tuple[int, ...]:
@@ -483,7 +495,7 @@ def main() -> int:
                     help="with --reader blobs: average the road channel over CELLS x CELLS blocks (default 4)")
     ap.add_argument("--drop", default="", metavar="NAMES",
                     help="with --reader blobs: zero these columns of every vehicle row, comma-separated: "
-                         + ", ".join(DROPPABLE))
+                         + ", ".join(DROPPABLE) + " (heading and crashed only with --exact-vehicles)")
     ap.add_argument("--ego-motion", action="store_true",
                     help="with --reader blobs: carry the older frame's vehicles into the newest frame's axes by "
                          "the AV's own turn (found by matching the road) and step before measuring their motion")
@@ -533,13 +545,15 @@ def main() -> int:
     grid = ObservationConfig()
     if args.road_pool < 1 or grid.height % args.road_pool or grid.width % args.road_pool:
         ap.error(f"--road-pool must divide the map's {grid.height} x {grid.width} cells, got {args.road_pool}")
-    if (args.exact_vehicles or args.ego_motion or args.track_frames != 2) and args.reader != "blobs":
-        ap.error("--exact-vehicles, --ego-motion and --track-frames only with --reader blobs")
+    if (args.exact_vehicles or args.ego_motion or args.track_frames != 2 or args.road_pool != 4) and args.reader != "blobs":
+        ap.error("--exact-vehicles, --ego-motion, --track-frames and --road-pool only with --reader blobs")
     if not 2 <= args.track_frames <= grid.frames:
         ap.error(f"--track-frames must be 2 to the map's {grid.frames} frames, got {args.track_frames}")
-    unknown = [n for n in filter(None, args.drop.split(",")) if n not in DROPPABLE]
-    if unknown or (args.drop and args.reader != "blobs"):
+    names = list(filter(None, args.drop.split(",")))
+    if any(n not in DROPPABLE for n in names) or (args.drop and args.reader != "blobs"):
         ap.error(f"--drop takes {', '.join(DROPPABLE)} with --reader blobs, got {args.drop!r}")
+    if not args.exact_vehicles and any(n != "velocity" for n in names):
+        ap.error("--drop heading or crashed only with --exact-vehicles: the detector's rows hold other values there")
     if args.view_box is not None:
         try:
             box = tuple(float(v) for v in args.view_box.split(","))

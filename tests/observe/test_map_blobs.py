@@ -115,10 +115,16 @@ def _road(pose: tuple[float, float, float]) -> np.ndarray:
     return ((np.abs(wy) < 6.0) | (np.abs(wx - 30.0) < 4.0)).astype(np.float32)
 
 
+def _arc(speed: float, turn: float, steps: int) -> tuple[float, float, float]:
+    """The pose after ``steps`` steps of 1 s of an observer leaving (0, 0, 0) at ``speed``
+    m/s, turning ``turn`` radians a step toward +y: a circle of radius speed / turn."""
+    radius, heading = speed / turn, turn * steps
+    return radius * np.sin(heading), radius * (1.0 - np.cos(heading)), heading
+
+
 def test_the_observers_turn_is_found_by_matching_the_road():
     speed, turn = 10.0, 0.3
-    step = MOD["_step"](np.array(turn), np.array(speed))
-    old, new = _road((0.0, 0.0, 0.0)), _road((float(step[0]), float(step[1]), turn))
+    old, new = _road((0.0, 0.0, 0.0)), _road(_arc(speed, turn, 1))
     found = MOD["observer_turn"](old[None], new[None], np.array([speed], dtype=np.float32), CFG)
     assert abs(found[0] - turn) <= 0.041  # one step of the candidate grid
     assert abs(MOD["observer_turn"](old[None], old[None], np.array([0.0], dtype=np.float32), CFG)[0]) < 1e-9
@@ -128,7 +134,6 @@ def test_with_the_observers_motion_a_car_keeping_its_course_has_the_relative_vel
     # The observer turns by 0.3 rad at 10 m/s; a car drives along world +x at 12 m/s. Its
     # velocity relative to the observer, in the newer frame's axes, is R(-0.3)·(12, 0) - (10, 0).
     speed, turn = 10.0, 0.3
-    ox, oy = MOD["_step"](np.array(turn), np.array(speed))
     car_old, car_new = np.array([20.0, 4.5]), np.array([32.0, 4.5])
 
     def local(p, pose):
@@ -137,7 +142,7 @@ def test_with_the_observers_motion_a_car_keeping_its_course_has_the_relative_vel
         return np.array([c * d[0] + s * d[1], -s * d[0] + c * d[1]])
 
     m = _maps()
-    for frame, pose, car in ((OLD, (0.0, 0.0, 0.0), car_old), (NEW, (float(ox), float(oy), turn), car_new)):
+    for frame, pose, car in ((OLD, (0.0, 0.0, 0.0), car_old), (NEW, _arc(speed, turn, 1), car_new)):
         lx, ly = local(car, pose)
         col = round(float((lx + CFG.behind) / CFG.resolution - 0.5))
         row = round(float((ly + 0.5 * CFG.height * CFG.resolution) / CFG.resolution - 0.5))
@@ -175,3 +180,23 @@ def test_a_track_through_four_frames_skips_a_missed_frame_and_follows_its_line()
     assert two[5] == 0.0 and two[2] == 0.0  # frame 2 holds no car: nothing to match
     with pytest.raises(ValueError, match="frames must be 2 to the stack's 4"):
         MOD["blob_features"](m, CFG, 1, frames=5)
+
+
+def test_a_four_frame_track_of_a_turning_observer_gives_the_velocity_relative_to_it_now():
+    # The observer turns 0.2 rad a step at 10 m/s; a car drives along world +x at 12 m/s.
+    # Relative to the observer now, in its axes: R(-0.6)·(12, 0) - (10, 0).
+    speed, turn = 10.0, 0.2
+    m = np.zeros((1, 4, 4, CFG.height, CFG.width), dtype=np.float32)
+    for frame in range(4):
+        x0, y0, th = _arc(speed, turn, frame)
+        d = np.array([20.0 + 12.0 * frame - x0, 10.0 - y0])
+        lx, ly = np.cos(th) * d[0] + np.sin(th) * d[1], -np.sin(th) * d[0] + np.cos(th) * d[1]
+        col = round(float((lx + CFG.behind) / CFG.resolution - 0.5))
+        row = round(float((ly + 0.5 * CFG.height * CFG.resolution) / CFG.resolution - 0.5))
+        m[0, HV, frame, row - 1: row + 1, col - 1: col + 2] = 1.0
+        m[0, RL, frame] = _road((x0, y0, th))
+        m[0, MV, frame, 15:17, 20:23] = speed / CFG.max_speed
+    want = np.array([12.0 * np.cos(3 * turn) - speed, -12.0 * np.sin(3 * turn)])
+    got = MOD["blob_features"](m, CFG, 1, ego_motion=True, frames=4)[0, MOD["ego_size"](CFG, 4):]
+    assert got[5] == 1.0
+    np.testing.assert_allclose(got[2:4] * 20, want, atol=1.2)

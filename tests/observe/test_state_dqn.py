@@ -343,17 +343,23 @@ def test_exact_vehicles_replace_the_found_ones_and_keep_the_maps_speed_and_road(
             break
     vec.close()
     ego = MOD["blob_ego_size"](ObservationConfig(), 4)
-    rows = MOD["features"](inp, specs, 6, 80.0, False, False, MOD["MAP_VIEW"])[..., -6 * 9:]
+    rows = b[..., ego:].reshape(*b.shape[:-1], 6, 9)
     np.testing.assert_array_equal(a[..., :ego], b[..., :ego])
-    np.testing.assert_array_equal(b[..., ego:], rows)
-    assert rows[..., 8].sum() > 0 and not np.array_equal(a[..., ego:], rows)
-    # --drop velocity,crashed zeroes those columns of every row and nothing else.
+    assert rows[..., 8].sum() > 0 and not np.array_equal(a[..., ego:], b[..., ego:])
+    # The six nearest of all the vehicles inside the view, present rows first, nearest first.
+    every = MOD["features"](inp, specs, 64, 80.0, False, False, MOD["MAP_VIEW"])[..., -64 * 9:]
+    every = every.reshape(*every.shape[:-1], 64, 9)
+    for e, av in zip(*np.nonzero(inp.active), strict=True):
+        inside = every[e, av][every[e, av, :, 8] > 0][:6]
+        np.testing.assert_array_equal(rows[e, av, : len(inside)], inside)
+        assert not rows[e, av, len(inside):].any()
+    # --drop velocity,heading zeroes those columns of every row and nothing else.
     dropped = MOD["StatePolicy"](_Prefers(1), 6, 80.0, False, reader="blobs", exact_vehicles=True,
-                                 drop=MOD["drop_columns"]("velocity,crashed")).read(inp)
-    kept = rows.reshape(*rows.shape[:-1], 6, 9).copy()
-    assert np.abs(kept[..., 2:4]).sum() > 0
-    kept[..., [2, 3, 7]] = 0.0
-    np.testing.assert_array_equal(dropped[..., ego:], kept.reshape(rows.shape))
+                                 drop=MOD["drop_columns"]("velocity,heading")).read(inp)
+    kept = rows.copy()
+    assert np.abs(kept[..., 2:4]).sum() > 0 and np.abs(kept[..., 4:6]).sum() > 0
+    kept[..., [2, 3, 4, 5]] = 0.0
+    np.testing.assert_array_equal(dropped[..., ego:], kept.reshape(*b.shape[:-1], -1))
     np.testing.assert_array_equal(dropped[..., :ego], a[..., :ego])
 
 
@@ -361,7 +367,7 @@ def test_exact_vehicles_need_the_blob_reader(monkeypatch, capsys):
     monkeypatch.setattr("sys.argv", ["state_dqn.py", "--exact-vehicles"])
     with pytest.raises(SystemExit) as exit_:
         MOD["main"]()
-    assert exit_.value.code == 2 and "--exact-vehicles, --ego-motion and --track-frames only with --reader blobs" in capsys.readouterr().err
+    assert exit_.value.code == 2 and "--exact-vehicles, --ego-motion, --track-frames and --road-pool only with --reader blobs" in capsys.readouterr().err
 
 
 def test_an_unknown_column_to_drop_is_refused(monkeypatch, capsys):
@@ -369,3 +375,15 @@ def test_an_unknown_column_to_drop_is_refused(monkeypatch, capsys):
     with pytest.raises(SystemExit) as exit_:
         MOD["main"]()
     assert exit_.value.code == 2 and "--drop takes velocity, heading, crashed with --reader blobs, got 'velocity,colour'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize(("argv", "message"), [
+    (["--reader", "blobs", "--drop", "heading"], "--drop heading or crashed only with --exact-vehicles"),
+    (["--road-pool", "8"], "--road-pool only with --reader blobs"),
+    (["--reader", "blobs", "--track-frames", "5"], "--track-frames must be 2 to the map's 4 frames, got 5"),
+])
+def test_blob_reader_options_out_of_place_are_refused(argv, message, monkeypatch, capsys):
+    monkeypatch.setattr("sys.argv", ["state_dqn.py", *argv])
+    with pytest.raises(SystemExit) as exit_:
+        MOD["main"]()
+    assert exit_.value.code == 2 and message in capsys.readouterr().err
