@@ -8,7 +8,8 @@ exact-state vector inside the map's view (``scripts/state_dqn.py``'s ``features`
 found, the share paired, the median distance of a pair, the share of pairs the detector
 matched to the frame before, and, over those, the median and 90th percentile of the error
 of its motion against the exact velocity difference (m/s), beside the spread of the exact
-values. Usage::
+values, and the share of observations whose nearest vehicle found lies more than 3 m from
+the nearest exact one (a missed or misplaced car ahead). Usage::
 
     python scripts/blob_check.py [--ego-motion] [--frames 2] [--envs 8] [--steps 80] [--seed 11] [--within 3]
 """
@@ -34,15 +35,17 @@ K = 16
 
 
 def pairs(scenario: str, envs: int, steps: int, seed: int, within: float, ego_motion: bool,
-          frames: int = 2) -> tuple[int, int, np.ndarray]:
-    """The exact vehicles seen, those found, and one row per pair: distance, matched,
-    found motion (x, y), exact velocity difference (x, y)."""
+          frames: int = 2) -> tuple[int, int, np.ndarray, np.ndarray]:
+    """The exact vehicles seen, those found, one row per pair (distance, matched, found
+    motion x and y, exact velocity difference x and y), and for each observation with both,
+    the distance between the nearest vehicle found and the nearest exact one, metres."""
     cfg = ObservationConfig()
     ego = _BLOBS["ego_size"](cfg, 4)
     vec = make_vec([scenario], envs, backend="fast")
     specs = list(vec.simulator.specs)
     names = np.asarray([s.name for s in specs], dtype=object)
     rows: list[list[float]] = []
+    nearest: list[float] = []
     n_exact = n_found = 0
     for step, rec in enumerate(rollout(vec, lambda inp: np.ones(inp.obs.shape[:2], dtype=np.int64), seed=seed)):
         if step >= steps:
@@ -57,12 +60,13 @@ def pairs(scenario: str, envs: int, steps: int, seed: int, within: float, ego_mo
             n_exact, n_found = n_exact + len(s), n_found + len(b)
             if len(s) == 0 or len(b) == 0:
                 continue
+            nearest.append(float(np.hypot(*(b[0, :2] - s[0, :2]))) * 50.0)  # both nearest first
             d = np.hypot(b[:, None, 0] - s[None, :, 0], b[:, None, 1] - s[None, :, 1]) * 50.0
             j = d.argmin(1)
             for i in np.flatnonzero(d[np.arange(len(b)), j] <= within):
                 rows.append([d[i, j[i]], b[i, 5], *(b[i, 2:4] * 20.0), *(s[j[i], 2:4] * 20.0)])
     vec.close()
-    return n_exact, n_found, np.asarray(rows, dtype=np.float64).reshape(-1, 6)
+    return n_exact, n_found, np.asarray(rows, dtype=np.float64).reshape(-1, 6), np.asarray(nearest)
 
 
 def main() -> int:
@@ -76,9 +80,10 @@ def main() -> int:
     args = ap.parse_args()
     if min(args.envs, args.steps) < 1 or args.within <= 0 or not 2 <= args.frames <= ObservationConfig().frames:
         ap.error(f"--envs and --steps must be at least 1, --within above 0, --frames 2 to {ObservationConfig().frames}")
-    print("scenario      exact  found  paired  median m  matched  motion error m/s: median  90%   exact spread (sd x, y)")
+    print("scenario      exact  found  paired  median m  matched  motion error m/s: median  90%   exact spread (sd x, y)"
+          "  nearest found > 3 m from nearest exact")
     for scenario in SCENARIOS:
-        n_exact, n_found, p = pairs(scenario, args.envs, args.steps, args.seed, args.within, args.ego_motion, args.frames)
+        n_exact, n_found, p, near = pairs(scenario, args.envs, args.steps, args.seed, args.within, args.ego_motion, args.frames)
         m = p[p[:, 1] > 0]
         err = np.hypot(m[:, 2] - m[:, 4], m[:, 3] - m[:, 5])
         line = f"{scenario:12s} {n_exact:6d} {n_found:6d} {len(p) / max(n_exact, 1):7.2f} "
@@ -87,7 +92,7 @@ def main() -> int:
             line += f"{np.median(err):24.1f} {np.quantile(err, 0.9):5.1f} {m[:, 4].std():13.1f}, {m[:, 5].std():.1f}"
         else:
             line += f"{'-':>24s} {'-':>5s} {'-':>13s}"
-        print(line)
+        print(line + (f"  {np.mean(near > 3.0):.2f}" if len(near) else "  -"))
     return 0
 
 

@@ -161,8 +161,8 @@ def test_with_the_observers_motion_a_car_keeping_its_course_has_the_relative_vel
 
 def test_the_check_pairs_found_vehicles_with_exact_ones_nearby():
     check = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "blob_check.py"), run_name="check")
-    n_exact, n_found, p = check["pairs"]("highway", 2, 6, 4, 3.0, False)
-    assert n_exact > 0 and 0 < len(p) <= n_found and p.shape[1] == 6
+    n_exact, n_found, p, near = check["pairs"]("highway", 2, 6, 4, 3.0, False)
+    assert n_exact > 0 and 0 < len(p) <= n_found and p.shape[1] == 6 and len(near) and np.median(near) < 1.5
     assert (p[:, 0] <= 3.0).all() and np.median(p[:, 0]) < 1.5
     matched = p[p[:, 1] > 0]
     assert len(matched) and np.median(np.hypot(*(matched[:, 2:4] - matched[:, 4:6]).T)) < 3.0
