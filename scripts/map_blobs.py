@@ -76,14 +76,14 @@ def blob_features(maps: NDArray[np.float32], cfg: ObservationConfig, k: int, poo
         raise ValueError(f"frames must be 2 to the stack's {t}, got {frames}")
     x = maps.reshape(-1, 4, t, h, w)
     n_obs = x.shape[0]
-    speed = x[:, MV, -2:].reshape(n_obs, 2, -1).max(-1)
+    mv_peak = x[:, MV, -frames:].reshape(n_obs, frames, -1).max(-1)  # |v| / max_speed in each frame
     road = x[:, RL, -1].reshape(n_obs, h // pool, pool, w // pool, pool).mean((2, 4)).reshape(n_obs, -1)
-    own = x[:, MV, -frames:].reshape(n_obs, frames, -1).max(-1) * cfg.max_speed
+    own = mv_peak * cfg.max_speed
     step_speed = 0.5 * (own[:, :-1] + own[:, 1:])  # (n_obs, frames - 1), m/s
     turn = (np.stack([observer_turn(x[:, RL, j - frames], x[:, RL, j - frames + 1], step_speed[:, j], cfg)
                       for j in range(frames - 1)], axis=1) if ego_motion else None)
     rows = vehicle_rows(x[:, [HV, AV], -frames:], cfg, k, turn, step_speed)
-    out = np.concatenate([speed, road, rows.reshape(n_obs, -1)], axis=1, dtype=np.float32)
+    out = np.concatenate([mv_peak[:, -2:], road, rows.reshape(n_obs, -1)], axis=1, dtype=np.float32)
     return out.reshape(*lead, -1)
 
 

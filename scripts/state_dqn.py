@@ -78,7 +78,7 @@ import runpy
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -127,6 +127,8 @@ TIME = 6
 N_POSE = POSE.stop - POSE.start
 #: ``--reader map`` reads the default VelocityMap (``observation`` overrides: none).
 MAP: dict[str, Any] = {}
+#: That map's geometry.
+GRID = ObservationConfig()
 CPU = torch.device("cpu")
 
 
@@ -241,21 +243,38 @@ def map_aux_step(net: MapPoseNet, opt: torch.optim.Optimizer, obs: torch.Tensor,
     return aux_step(net.summary, net.aux, opt, obs, obs[:, net.n_map + N_POSE:], dtype)
 
 
+class BlobReading(NamedTuple):
+    """``--reader blobs``'s options (module docstring), as :func:`blob_reading` reads them."""
+
+    road_pool: int = 4
+    exact_vehicles: bool = False
+    drop: tuple[int, ...] = ()  #: columns of every vehicle row zeroed (:func:`drop_columns`)
+    ego_motion: bool = False
+    frames: int = 2
+
+
+#: The detector's defaults.
+BLOBS = BlobReading()
+
+
+def blob_reading(args: argparse.Namespace) -> BlobReading:
+    return BlobReading(args.road_pool, args.exact_vehicles, drop_columns(args.drop), args.ego_motion, args.track_frames)
+
+
 class StatePolicy:
     """ε-greedy (``eps() > 0``) or greedy actions of ``net`` over :func:`batch_features`
-    (``reader`` "state") or :func:`map_features` ("map"), its forward pass in ``dtype``;
+    (``reader`` "state"), :func:`map_features` ("map") or :func:`read_blobs` ("blobs"), its
+    forward pass in ``dtype``;
     keeps the latest step's input ``(num_envs, n_av, F)`` in :attr:`latest`."""
 
     def __init__(self, net: nn.Module, k: int, radius: float, route: bool,
                  rng: np.random.Generator | None = None, eps: Callable[[], float] = lambda: 0.0,
                  pose: bool = True, view_box: tuple[float, float, float] | None = None, show_time: bool = True,
                  reader: str = "state", dtype: torch.dtype = torch.float32, aux: bool = False,
-                 road_pool: int = 4, exact_vehicles: bool = False, drop: tuple[int, ...] = (),
-                 ego_motion: bool = False, frames: int = 2) -> None:
+                 blobs: BlobReading = BLOBS) -> None:
         self.net, self.k, self.radius, self.route, self.rng, self.eps = net, k, radius, route, rng, eps
         self.pose, self.view_box, self.show_time, self.reader, self.dtype = pose, view_box, show_time, reader, dtype
-        self.aux, self.road_pool, self.exact_vehicles, self.drop = aux, road_pool, exact_vehicles, list(drop)
-        self.ego_motion, self.frames = ego_motion, frames
+        self.aux, self.blobs = aux, blobs
         self.latest: NDArray[np.float32] | None = None
 
     def read(self, inp: PolicyInput) -> NDArray[np.float32]:
@@ -264,13 +283,7 @@ class StatePolicy:
         if self.reader == "map":
             return map_features(inp, specs, self.pose, self.show_time, self.aux)
         if self.reader == "blobs":
-            x = blob_features(inp.obs, ObservationConfig(), self.k, self.road_pool, self.ego_motion, self.frames)
-            if self.exact_vehicles:  # the same rows' layout, from the Scenes (module docstring)
-                x[..., -self.k * PER_NEIGHBOUR:] = exact_in_view(inp, specs, self.k).reshape(*x.shape[:-1], -1)
-            if self.drop:
-                rows = x[..., -self.k * PER_NEIGHBOUR:].reshape(*x.shape[:-1], self.k, PER_NEIGHBOUR)
-                rows[..., self.drop] = 0.0
-            return x
+            return read_blobs(inp, specs, self.k, self.blobs)
         return features(inp, specs, self.k, self.radius, self.route, self.pose, self.view_box, self.show_time)
 
     def __call__(self, inp: PolicyInput) -> NDArray[np.int64]:
@@ -291,6 +304,18 @@ def next_input(rec: StepRecord, names: NDArray[np.object_], simulator: Any) -> P
     to and the maps drawn there. Where an episode ended, both are its last ones
     (``rec.scenes``, ``rec.next_obs``), not the next episode's first (``rec.obs_after``)."""
     return PolicyInput(rec.next_obs, rec.scenes, rec.agents.active, names, simulator)
+
+
+def read_blobs(inp: PolicyInput, specs: list[Any], k: int, opts: BlobReading) -> NDArray[np.float32]:
+    """``--reader blobs``'s input ``(num_envs, n_av, F)``: :func:`blob_features` of the maps,
+    with ``opts.exact_vehicles`` the rows of :func:`exact_in_view` in place of the vehicles
+    found (the same layout), and ``opts.drop``'s columns zeroed."""
+    x = blob_features(inp.obs, GRID, k, opts.road_pool, opts.ego_motion, opts.frames)
+    rows = x[..., -k * PER_NEIGHBOUR:].reshape(*x.shape[:-1], k, PER_NEIGHBOUR)  # a view into x
+    if opts.exact_vehicles:
+        rows[...] = exact_in_view(inp, specs, k)
+    rows[..., list(opts.drop)] = 0.0
+    return x
 
 
 #: ``--drop``'s names for columns of a vehicle row (the exact-state layout). The detector's
@@ -327,9 +352,7 @@ def evaluate(net: nn.Module, args: argparse.Namespace, scenarios: list[str], epi
     def make() -> Policy:
         return StatePolicy(net, args.neighbours, args.radius, not args.no_route, pose=not args.no_pose,
                            view_box=args.view_box, show_time=not args.no_time, reader=args.reader,
-                           dtype=resolve_precision(args.precision, CPU), road_pool=args.road_pool,
-                           exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop),
-                           ego_motion=args.ego_motion, frames=args.track_frames)
+                           dtype=resolve_precision(args.precision, CPU), blobs=blob_reading(args))
 
     net.eval()
     try:
@@ -351,16 +374,16 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     # Every step stores at most one next observation per agent and, for new episodes, one
     # first observation per agent; the replay's oldest entry reaches n-1 steps further back,
     # and a stored map's stack T-1 steps further still.
-    capacity = 2 * cfg.buffer_size + (2 * cfg.n_step + 4 + 2 * ObservationConfig().frames) * args.envs * vec.n_av
+    capacity = 2 * cfg.buffer_size + (2 * cfg.n_step + 4 + 2 * GRID.frames) * args.envs * vec.n_av
     net: nn.Module
     store: Any
     aux = float(args.aux)
     if args.reader == "map":
-        net = MapPoseNet(ObservationConfig(), args.hidden, aux=N_AUX if aux else 0)
+        net = MapPoseNet(GRID, args.hidden, aux=N_AUX if aux else 0)
         n_in, what = net.n_map + N_POSE, "map reader and place" + (f", auxiliary targets at {aux:g} x lr" if aux else "")
         store = MapAndPose(capacity, net.shape, N_POSE + (N_AUX if aux else 0))
     elif args.reader == "blobs":
-        ego = blob_ego_size(ObservationConfig(), args.road_pool)
+        ego = blob_ego_size(GRID, args.road_pool)
         found = "exact vehicles in the map's view" if args.exact_vehicles else "vehicles found in the map"
         n_in, what = ego + args.neighbours * PER_NEIGHBOUR, f"{found}, road pooled {args.road_pool}"
         net = EgoAttention(ego, PER_NEIGHBOUR, args.neighbours, args.hidden)
@@ -383,9 +406,7 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     transitions = updates = 0
     policy = StatePolicy(net, args.neighbours, args.radius, route, rng, lambda: epsilon(cfg, transitions, args.steps),
                          pose=not args.no_pose, view_box=args.view_box, show_time=not args.no_time,
-                         reader=args.reader, dtype=dtype, aux=bool(aux), road_pool=args.road_pool,
-                         exact_vehicles=args.exact_vehicles, drop=drop_columns(args.drop),
-                         ego_motion=args.ego_motion, frames=args.track_frames)
+                         reader=args.reader, dtype=dtype, aux=bool(aux), blobs=blob_reading(args))
     cur = np.full(slots, -1, dtype=np.int64)
     fresh = np.ones(args.envs, dtype=bool)  # environments whose current observation is not stored yet
 
@@ -542,7 +563,7 @@ def main() -> int:
         ap.error("--eval-every must be at least 0")
     if args.aux < 0 or (args.aux and args.reader != "map"):
         ap.error("--aux takes a scale of at least 0, and only with --reader map")
-    grid = ObservationConfig()
+    grid = GRID
     if args.road_pool < 1 or grid.height % args.road_pool or grid.width % args.road_pool:
         ap.error(f"--road-pool must divide the map's {grid.height} x {grid.width} cells, got {args.road_pool}")
     if (args.exact_vehicles or args.ego_motion or args.track_frames != 2 or args.road_pool != 4) and args.reader != "blobs":

@@ -342,7 +342,6 @@ class Learner:
         return segment + 1
 
 
-
 def restore_with_targets(run: Path) -> tuple[PolicyTrainConfig, QNetwork, Learner]:
     """A run trained with the auxiliary loss, restored on the CPU for inspection: its config,
     network and learner (replay and auxiliary targets included). Raises ConfigError for a

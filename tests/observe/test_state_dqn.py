@@ -335,7 +335,8 @@ def test_exact_vehicles_replace_the_found_ones_and_keep_the_maps_speed_and_road(
     vec = make_vec(["merge"], 2, backend="fast")
     specs = list(vec.simulator.specs)
     names = np.asarray([s.name for s in specs], dtype=object)
-    found, exact = (MOD["StatePolicy"](_Prefers(1), 6, 80.0, False, reader="blobs", exact_vehicles=e) for e in (False, True))
+    found, exact = (MOD["StatePolicy"](_Prefers(1), 6, 80.0, False, reader="blobs", blobs=MOD["BlobReading"](exact_vehicles=e))
+                    for e in (False, True))
     for step, rec in enumerate(rollout(vec, lambda inp: np.ones(inp.obs.shape[:2], dtype=np.int64), seed=2)):
         if step == 3:
             inp = MOD["next_input"](rec, names, vec.simulator)
@@ -354,8 +355,8 @@ def test_exact_vehicles_replace_the_found_ones_and_keep_the_maps_speed_and_road(
         np.testing.assert_array_equal(rows[e, av, : len(inside)], inside)
         assert not rows[e, av, len(inside):].any()
     # --drop velocity,heading zeroes those columns of every row and nothing else.
-    dropped = MOD["StatePolicy"](_Prefers(1), 6, 80.0, False, reader="blobs", exact_vehicles=True,
-                                 drop=MOD["drop_columns"]("velocity,heading")).read(inp)
+    opts = MOD["BlobReading"](exact_vehicles=True, drop=MOD["drop_columns"]("velocity,heading"))
+    dropped = MOD["StatePolicy"](_Prefers(1), 6, 80.0, False, reader="blobs", blobs=opts).read(inp)
     kept = rows.copy()
     assert np.abs(kept[..., 2:4]).sum() > 0 and np.abs(kept[..., 4:6]).sum() > 0
     kept[..., [2, 3, 4, 5]] = 0.0
