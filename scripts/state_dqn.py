@@ -73,6 +73,7 @@ from __future__ import annotations
 import argparse
 import copy
 import csv
+import hashlib
 import json
 import runpy
 import time
@@ -86,7 +87,13 @@ from numpy.typing import NDArray
 from torch import nn
 from tqdm import tqdm
 
-from latentdrive.config import ConfigError, ObservationConfig, parse_override_args, validate
+from latentdrive.config import (
+    ConfigError,
+    NoiseConfig,
+    ObservationConfig,
+    parse_override_args,
+    validate,
+)
 from latentdrive.errors import LatentDriveError
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.report import compare, format_compare, format_table, policy_report
@@ -251,6 +258,7 @@ class BlobReading(NamedTuple):
     drop: tuple[int, ...] = ()  #: columns of every vehicle row zeroed (:func:`drop_columns`)
     ego_motion: bool = False
     frames: int = 2
+    noise: NoiseConfig | None = None  #: with ``exact_vehicles``, the sensor noise its rows carry
 
 
 #: The detector's defaults.
@@ -258,7 +266,23 @@ BLOBS = BlobReading()
 
 
 def blob_reading(args: argparse.Namespace) -> BlobReading:
-    return BlobReading(args.road_pool, args.exact_vehicles, drop_columns(args.drop), args.ego_motion, args.track_frames)
+    return BlobReading(args.road_pool, args.exact_vehicles, drop_columns(args.drop), args.ego_motion, args.track_frames,
+                       sensor_config(args.sensor_noise))
+
+
+#: ``--sensor-noise``'s names for the parts of :class:`~latentdrive.config.NoiseConfig`.
+NOISE_PARTS = {"position": "position_std", "speed": "speed_std", "heading": "heading_std", "miss": "miss_prob"}
+
+
+def sensor_config(names: str | None) -> NoiseConfig | None:
+    """The map's default sensor noise restricted to ``names`` (comma-separated
+    :data:`NOISE_PARTS` keys, or ``all``), the other parts zero; ``None`` for ``None``."""
+    if names is None:
+        return None
+    parts = list(NOISE_PARTS) if names == "all" else [n for n in names.split(",") if n]
+    default = NoiseConfig.model_validate({})
+    return NoiseConfig.model_validate({field: getattr(default, field) if part in parts else 0.0
+                                       for part, field in NOISE_PARTS.items()})
 
 
 class StatePolicy:
@@ -313,7 +337,7 @@ def read_blobs(inp: PolicyInput, specs: list[Any], k: int, opts: BlobReading) ->
     x = blob_features(inp.obs, GRID, k, opts.road_pool, opts.ego_motion, opts.frames)
     rows = x[..., -k * PER_NEIGHBOUR:].reshape(*x.shape[:-1], k, PER_NEIGHBOUR)  # a view into x
     if opts.exact_vehicles:
-        rows[...] = exact_in_view(inp, specs, k)
+        rows[...] = exact_in_view(inp, specs, k, opts.noise)
     rows[..., list(opts.drop)] = 0.0
     return x
 
@@ -326,15 +350,46 @@ DROPPABLE = {"velocity": (2, 3), "heading": (4, 5), "crashed": (7,)}
 IN_VIEW_SEARCH = 64
 
 
-def exact_in_view(inp: PolicyInput, specs: list[Any], k: int) -> NDArray[np.float32]:
+def exact_in_view(inp: PolicyInput, specs: list[Any], k: int, noise: NoiseConfig | None = None) -> NDArray[np.float32]:
     """``(num_envs, n_av, k, PER_NEIGHBOUR)``: the exact-state rows of the ``k`` nearest
     vehicles inside :data:`MAP_VIEW` (of the :data:`IN_VIEW_SEARCH` nearest within 80 m,
-    which reaches every corner of the view), nearest first, zero rows where fewer."""
-    x = features(inp, specs, IN_VIEW_SEARCH, 80.0, False, False, MAP_VIEW)
+    which reaches every corner of the view), nearest first, zero rows where fewer. With
+    ``noise``, the rows first carry the map's sensor noise (:func:`sensor_noise`)."""
+    x = features(inp, specs, IN_VIEW_SEARCH, 80.0, False, False)
     rows = x[..., -IN_VIEW_SEARCH * PER_NEIGHBOUR:].reshape(*x.shape[:2], IN_VIEW_SEARCH, PER_NEIGHBOUR)
+    if noise is not None:
+        rows = sensor_noise(rows, noise)
+    behind, ahead, side = MAP_VIEW
+    rows = np.where(((rows[..., 0] * 50.0 < -behind) | (rows[..., 0] * 50.0 > ahead)
+                     | (np.abs(rows[..., 1]) * 50.0 > side))[..., None], 0.0, rows)
     # A stable sort of "absent" keeps the present rows first and in their nearest-first order.
     order = np.argsort(rows[..., -1] < 0.5, axis=-1, kind="stable")[..., :k]
-    return np.take_along_axis(rows, order[..., None], axis=2)
+    return np.take_along_axis(rows, order[..., None], axis=2).astype(np.float32)
+
+
+def sensor_noise(rows: NDArray[np.float32], noise: NoiseConfig) -> NDArray[np.float32]:
+    """Exact-state vehicle rows ``(..., PER_NEIGHBOUR)`` as the map's sensor draws them
+    (:class:`~latentdrive.config.NoiseConfig`, as :func:`~latentdrive.observe.draw_noise`):
+    each present vehicle's place jittered by ``position_std`` metres on each axis, its speed
+    along its heading by ``speed_std`` m/s, its heading by ``heading_std`` radians, and the
+    vehicle dropped (a zero row) with ``miss_prob``. The draws come from a generator seeded
+    by the rows themselves, so the same scene reads the same whenever it is read (the
+    transition's next input and the next step's input agree, as the map's frames do)."""
+    flat = np.ascontiguousarray(rows).reshape(-1, *rows.shape[-2:])  # one block per observer
+    out = flat.astype(np.float64)
+    for block, exact in zip(out, flat, strict=True):
+        seed = np.frombuffer(hashlib.blake2b(exact.tobytes(), digest_size=16).digest(), np.uint32)
+        rng = np.random.default_rng(seed.tolist())
+        n = exact.shape[0]
+        block[:, 0:2] += rng.standard_normal((n, 2)) * noise.position_std / 50.0
+        c, s = block[:, 4].copy(), block[:, 5].copy()
+        dv = rng.standard_normal(n) * noise.speed_std / 20.0
+        block[:, 2] += dv * c
+        block[:, 3] += dv * s
+        turn = rng.standard_normal(n) * noise.heading_std
+        block[:, 4], block[:, 5] = c * np.cos(turn) - s * np.sin(turn), s * np.cos(turn) + c * np.sin(turn)
+        block[(rng.random(n) < noise.miss_prob) | (exact[:, -1] < 0.5)] = 0.0
+    return out.reshape(rows.shape).astype(np.float32)
 
 
 def drop_columns(names: str) -> tuple[int, ...]:
@@ -385,6 +440,8 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
     elif args.reader == "blobs":
         ego = blob_ego_size(GRID, args.road_pool)
         found = "exact vehicles in the map's view" if args.exact_vehicles else "vehicles found in the map"
+        if args.sensor_noise is not None:
+            found += f" with the map's sensor noise ({args.sensor_noise})"
         n_in, what = ego + args.neighbours * PER_NEIGHBOUR, f"{found}, road pooled {args.road_pool}"
         net = EgoAttention(ego, PER_NEIGHBOUR, args.neighbours, args.hidden)
         store = LatentStore(capacity, (n_in,))
@@ -526,6 +583,9 @@ def main() -> int:
     ap.add_argument("--exact-vehicles", action="store_true",
                     help="with --reader blobs: the exact-state rows of the vehicles inside the map's view in place "
                          "of those the detector finds")
+    ap.add_argument("--sensor-noise", nargs="?", const="all", metavar="PARTS",
+                    help="with --exact-vehicles: the exact rows carry the map's sensor noise, all of it or the "
+                         f"comma-separated parts named ({', '.join(NOISE_PARTS)})")
     ap.add_argument("--aux", type=float, default=0.0, metavar="SCALE",
                     help="with --reader map: after each Q update, also train the reader to predict, from the map, "
                          "the AV's speeds and its 12 nearest vehicles inside the map's view (exact states), by "
@@ -573,6 +633,9 @@ def main() -> int:
     names = list(filter(None, args.drop.split(",")))
     if any(n not in DROPPABLE for n in names) or (args.drop and args.reader != "blobs"):
         ap.error(f"--drop takes {', '.join(DROPPABLE)} with --reader blobs, got {args.drop!r}")
+    if args.sensor_noise is not None and (not args.exact_vehicles or (args.sensor_noise != "all" and (
+            not args.sensor_noise or any(n not in NOISE_PARTS for n in args.sensor_noise.split(","))))):
+        ap.error(f"--sensor-noise takes all or {', '.join(NOISE_PARTS)}, with --exact-vehicles, got {args.sensor_noise!r}")
     if not args.exact_vehicles and any(n != "velocity" for n in names):
         ap.error("--drop heading or crashed only with --exact-vehicles: the detector's rows hold other values there")
     if args.view_box is not None:

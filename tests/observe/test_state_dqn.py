@@ -382,9 +382,79 @@ def test_an_unknown_column_to_drop_is_refused(monkeypatch, capsys):
     (["--reader", "blobs", "--drop", "heading"], "--drop heading or crashed only with --exact-vehicles"),
     (["--road-pool", "8"], "--road-pool only with --reader blobs"),
     (["--reader", "blobs", "--track-frames", "5"], "--track-frames must be 2 to the map's 4 frames, got 5"),
+    (["--reader", "blobs", "--sensor-noise"], "--sensor-noise takes all or position, speed, heading, miss, with --exact-vehicles"),
+    (["--reader", "blobs", "--exact-vehicles", "--sensor-noise", "miss,colour"], "got 'miss,colour'"),
 ])
 def test_blob_reader_options_out_of_place_are_refused(argv, message, monkeypatch, capsys):
     monkeypatch.setattr("sys.argv", ["state_dqn.py", *argv])
     with pytest.raises(SystemExit) as exit_:
         MOD["main"]()
     assert exit_.value.code == 2 and message in capsys.readouterr().err
+
+
+def _rows(n: int) -> np.ndarray:
+    """``n`` present vehicle rows heading 0.5 rad off the observer, 20 m ahead, 5 m right."""
+    row = np.array([20 / 50, 5 / 50, 0.1, -0.2, np.cos(0.5), np.sin(0.5), 0.0, 0.0, 1.0], dtype=np.float32)
+    return np.tile(row, (n, 1))
+
+
+def test_sensor_noise_draws_the_maps_noise_on_exact_rows():
+    from latentdrive.config import NoiseConfig
+
+    rows = _rows(4000)[None]
+    noisy = MOD["sensor_noise"](rows, NoiseConfig())[0]
+    kept = noisy[:, 8] > 0.5
+    assert 0.08 < 1 - kept.mean() < 0.12  # miss_prob 0.1
+    assert not noisy[~kept].any()  # a missed vehicle is a zero row
+    d = (noisy[kept] - rows[0, kept]).astype(np.float64)
+    np.testing.assert_allclose(d[:, :2].std(0) * 50, 0.75, rtol=0.06)  # metres on each axis
+    # The speed's jitter lies along the vehicle's heading: 1 m/s in size.
+    along = (d[:, 2] * np.cos(0.5) + d[:, 3] * np.sin(0.5)) * 20
+    across = (-d[:, 2] * np.sin(0.5) + d[:, 3] * np.cos(0.5)) * 20
+    assert abs(along.std() - 1.0) < 0.06 and np.abs(across).max() < 0.05
+    turn = np.arctan2(noisy[kept, 5], noisy[kept, 4]) - 0.5
+    assert abs(turn.std() - 0.02) < 0.002
+    np.testing.assert_allclose(np.hypot(noisy[kept, 4], noisy[kept, 5]), 1.0, atol=1e-6)
+    np.testing.assert_array_equal(d[:, 6:], 0.0)
+
+
+def test_sensor_noise_is_the_same_for_the_same_rows_and_spares_absent_ones():
+    from latentdrive.config import NoiseConfig
+
+    rows = np.zeros((2, 3, 10, 9), dtype=np.float32)
+    rows[..., :6, :] = _rows(6)
+    rows[1, 2, :6, 0] += 0.01  # one observer sees something else
+    noisy = MOD["sensor_noise"](rows, NoiseConfig())
+    np.testing.assert_array_equal(noisy, MOD["sensor_noise"](rows.copy(), NoiseConfig()))
+    np.testing.assert_array_equal(noisy[0, 0], noisy[1, 1])  # same rows, same draws
+    assert not np.array_equal(noisy[0, 0], noisy[1, 2])
+    assert not noisy[..., 6:, :].any()
+    # Only the parts named are drawn.
+    only_miss = MOD["sensor_noise"](rows, MOD["sensor_config"]("miss"))
+    kept = only_miss[..., 8] > 0.5
+    np.testing.assert_array_equal(only_miss[kept], rows[kept])
+    assert MOD["sensor_config"]("position,speed").miss_prob == 0.0
+    assert MOD["sensor_config"]("all") == NoiseConfig() and MOD["sensor_config"](None) is None
+
+
+def test_exact_vehicles_with_sensor_noise_keep_the_view_and_the_nearest_first_order():
+    from latentdrive.rollout import rollout
+    from latentdrive.vec import make_vec
+
+    vec = make_vec(["highway"], 2, backend="fast")
+    specs = list(vec.simulator.specs)
+    names = np.asarray([s.name for s in specs], dtype=object)
+    for step, rec in enumerate(rollout(vec, lambda inp: np.ones(inp.obs.shape[:2], dtype=np.int64), seed=3)):
+        if step == 3:
+            inp = MOD["next_input"](rec, names, vec.simulator)
+            break
+    vec.close()
+    clean = MOD["exact_in_view"](inp, specs, 16)
+    noisy = MOD["exact_in_view"](inp, specs, 16, MOD["sensor_config"]("all"))
+    behind, ahead, side = MOD["MAP_VIEW"]
+    present = noisy[..., 8] > 0.5
+    assert present.any() and present.sum() < (clean[..., 8] > 0.5).sum() + 8
+    x, y = noisy[..., 0][present] * 50, noisy[..., 1][present] * 50
+    assert (x >= -behind).all() and (x <= ahead).all() and (np.abs(y) <= side).all()
+    # Present rows first: no present row after an absent one.
+    assert not (np.diff(present.astype(int), axis=-1) > 0).any()
