@@ -36,7 +36,11 @@ replaces the vehicles found by the exact-state rows of the nearest inside the ma
 what a perfect detector would give this reader. ``--ego-motion`` measures the detector's
 motion after carrying the older frame into the newest frame's axes by the AV's own turn and
 step (``scripts/map_blobs.py``); ``--track-frames F`` follows each vehicle through the F
-newest frames and fits its motion. ``--drop velocity,heading,crashed`` zeroes
+newest frames and fits its motion; ``--fill`` (with ``--track-frames`` 3 or 4) puts a vehicle
+the newest frame lost (the sensor drops each from a frame with probability 0.1) back one step
+on along its track. ``--sensor-noise [PARTS]`` (with ``--exact-vehicles``) gives the exact
+rows the map's sensor noise (:func:`sensor_noise`): what a perfect detector of one frame
+would give. ``--drop velocity,heading,crashed`` zeroes
 those columns of every vehicle row (:data:`DROPPABLE`) to ask which of them matters.
 
 It is a diagnostic reference, not the paper's method: the state vector has no raster and no
@@ -52,7 +56,8 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
-        [--reader state|map|blobs] [--road-pool CELLS] [--ego-motion] [--track-frames F] [--exact-vehicles] [--drop NAMES] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
+        [--reader state|map|blobs] [--road-pool CELLS] [--ego-motion] [--track-frames F] [--fill]
+        [--exact-vehicles [--sensor-noise [PARTS]]] [--drop NAMES] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
     python scripts/state_dqn.py --pair A.json B.json
 
@@ -259,6 +264,7 @@ class BlobReading(NamedTuple):
     ego_motion: bool = False
     frames: int = 2
     noise: NoiseConfig | None = None  #: with ``exact_vehicles``, the sensor noise its rows carry
+    fill: bool = False  #: vehicles the newest frame lost put back along their tracks
 
 
 #: The detector's defaults.
@@ -267,7 +273,7 @@ BLOBS = BlobReading()
 
 def blob_reading(args: argparse.Namespace) -> BlobReading:
     return BlobReading(args.road_pool, args.exact_vehicles, drop_columns(args.drop), args.ego_motion, args.track_frames,
-                       sensor_config(args.sensor_noise))
+                       sensor_config(args.sensor_noise), args.fill)
 
 
 #: ``--sensor-noise``'s names for the parts of :class:`~latentdrive.config.NoiseConfig`.
@@ -334,7 +340,7 @@ def read_blobs(inp: PolicyInput, specs: list[Any], k: int, opts: BlobReading) ->
     """``--reader blobs``'s input ``(num_envs, n_av, F)``: :func:`blob_features` of the maps,
     with ``opts.exact_vehicles`` the rows of :func:`exact_in_view` in place of the vehicles
     found (the same layout), and ``opts.drop``'s columns zeroed."""
-    x = blob_features(inp.obs, GRID, k, opts.road_pool, opts.ego_motion, opts.frames)
+    x = blob_features(inp.obs, GRID, k, opts.road_pool, opts.ego_motion, opts.frames, opts.fill)
     rows = x[..., -k * PER_NEIGHBOUR:].reshape(*x.shape[:-1], k, PER_NEIGHBOUR)  # a view into x
     if opts.exact_vehicles:
         rows[...] = exact_in_view(inp, specs, k, opts.noise)
@@ -442,6 +448,8 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
         found = "exact vehicles in the map's view" if args.exact_vehicles else "vehicles found in the map"
         if args.sensor_noise is not None:
             found += f" with the map's sensor noise ({args.sensor_noise})"
+        if args.fill:
+            found += ", the lost ones put back"
         n_in, what = ego + args.neighbours * PER_NEIGHBOUR, f"{found}, road pooled {args.road_pool}"
         net = EgoAttention(ego, PER_NEIGHBOUR, args.neighbours, args.hidden)
         store = LatentStore(capacity, (n_in,))
@@ -580,6 +588,9 @@ def main() -> int:
     ap.add_argument("--track-frames", type=int, default=2, metavar="F",
                     help="with --reader blobs: follow each vehicle back through the map's F newest frames and "
                          "take its motion as the slope of its places (default 2: the displacement between two)")
+    ap.add_argument("--fill", action="store_true",
+                    help="with --reader blobs and --track-frames 3 or 4: put a vehicle the newest frame lost back "
+                         "one step on along its track (scripts/map_blobs.py)")
     ap.add_argument("--exact-vehicles", action="store_true",
                     help="with --reader blobs: the exact-state rows of the vehicles inside the map's view in place "
                          "of those the detector finds")
@@ -630,6 +641,8 @@ def main() -> int:
         ap.error("--exact-vehicles, --ego-motion, --track-frames and --road-pool only with --reader blobs")
     if not 2 <= args.track_frames <= grid.frames:
         ap.error(f"--track-frames must be 2 to the map's {grid.frames} frames, got {args.track_frames}")
+    if args.fill and (args.reader != "blobs" or args.track_frames < 3):
+        ap.error("--fill follows a lost vehicle through two older frames: it needs --reader blobs and --track-frames 3 or 4")
     names = list(filter(None, args.drop.split(",")))
     if any(n not in DROPPABLE for n in names) or (args.drop and args.reader != "blobs"):
         ap.error(f"--drop takes {', '.join(DROPPABLE)} with --reader blobs, got {args.drop!r}")

@@ -200,3 +200,34 @@ def test_a_four_frame_track_of_a_turning_observer_gives_the_velocity_relative_to
     got = MOD["blob_features"](m, CFG, 1, ego_motion=True, frames=4)[0, MOD["ego_size"](CFG, 4):]
     assert got[5] == 1.0
     np.testing.assert_allclose(got[2:4] * 20, want, atol=1.2)
+
+
+def test_fill_puts_a_car_the_newest_frame_lost_one_step_on_along_its_track():
+    m = np.zeros((1, 4, 3, CFG.height, CFG.width), dtype=np.float32)
+    m[0, HV, 0, 8:10, 20:22] = 1.0  # two cells (3 m) a step along the road...
+    m[0, HV, 1, 8:10, 22:24] = 1.0
+    # ...and missed in the newest frame, which holds a car elsewhere (tracked, at rest).
+    m[0, HV, :, 20:22, 40:42] = 0.5
+    m[0, HV, 1, 26:28, 2:4] = 1.0  # lost as well, but with no motion of its own: not put back
+    ego = MOD["ego_size"](CFG, 4)
+    plain = MOD["blob_features"](m, CFG, 3, frames=3)[0, ego:].reshape(3, PER_NEIGHBOUR)
+    assert plain[0, 8] == 1.0 and not plain[1:].any()
+    rows = MOD["blob_features"](m, CFG, 3, frames=3, fill=True)[0, ego:].reshape(3, PER_NEIGHBOUR)
+    # Put back at column 24.5 (x = 25·1.5 − 32 = 5.5 m), row 8.5 (y = 9·1.5 − 24 = −10.5 m),
+    # with its motion of 3 m a step; nearer the AV than the car at column 40.5.
+    np.testing.assert_allclose(rows[0], [5.5 / 50, -10.5 / 50, 3.0 / 20, 0.0, 1.0, 1.0, 0.0, 0.4, 1.0], atol=1e-6)
+    np.testing.assert_allclose(rows[1, [0, 1, 2, 3, 8]], [29.5 / 50, 7.5 / 50, 0.0, 0.0, 1.0], atol=1e-6)
+    assert not rows[2].any()
+
+
+def test_fill_leaves_a_car_that_the_newest_frame_holds_and_one_that_drove_out_of_the_map():
+    m = np.zeros((1, 4, 3, CFG.height, CFG.width), dtype=np.float32)
+    for frame in range(3):
+        m[0, HV, frame, 8:10, 20 + 2 * frame:22 + 2 * frame] = 1.0  # tracked in every frame
+    m[0, HV, 0, 20:22, 58:60] = 1.0  # 4.5 m a step toward the map's far edge, last seen at 61
+    m[0, HV, 1, 20:22, 61:63] = 1.0
+    ego = MOD["ego_size"](CFG, 4)
+    plain = MOD["blob_features"](m, CFG, 2, frames=3)[0, ego:]
+    np.testing.assert_array_equal(MOD["blob_features"](m, CFG, 2, frames=3, fill=True)[0, ego:], plain)
+    with pytest.raises(ValueError, match="frames must be at least 3"):
+        MOD["blob_features"](m, CFG, 2, frames=2, fill=True)
