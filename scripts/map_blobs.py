@@ -60,7 +60,8 @@ def ego_size(cfg: ObservationConfig, pool: int) -> int:
 
 
 def blob_features(maps: NDArray[np.float32], cfg: ObservationConfig, k: int, pool: int = 4,
-                  ego_motion: bool = False, frames: int = 2, fill: bool = False) -> NDArray[np.float32]:
+                  ego_motion: bool = False, frames: int = 2, fill: bool = False,
+                  smooth: bool = False) -> NDArray[np.float32]:
     """``(..., ego_size + k·PER_VEHICLE)`` from stacked maps ``(..., 4, T, H, W)`` (T ≥ 2) of
     geometry ``cfg``; the layout is the module docstring's. With ``ego_motion`` the older
     frame's vehicles are first carried into the newest frame's axes by the observer's own
@@ -68,7 +69,9 @@ def blob_features(maps: NDArray[np.float32], cfg: ObservationConfig, k: int, poo
     ``frames`` (2 to T) is how many of the newest frames the tracker follows each vehicle
     through; its motion is then the least-squares slope of its places (:func:`vehicle_rows`).
     With ``fill``, a vehicle the newest frame lost is put back where its track says it is
-    (:func:`vehicle_rows`; ``frames`` ≥ 3)."""
+    (:func:`vehicle_rows`; ``frames`` ≥ 3). With ``smooth``, a tracked vehicle's place is its
+    fitted line's at the newest frame instead of its newest blob's centre (the sensor's
+    position noise is independent from frame to frame, so the fit averages it down)."""
     *lead, c, t, h, w = maps.shape
     if c != 4 or t < 2 or (h, w) != (cfg.height, cfg.width):
         raise ValueError(f"expected maps (..., 4, T >= 2, {cfg.height}, {cfg.width}), got {maps.shape}")
@@ -86,7 +89,7 @@ def blob_features(maps: NDArray[np.float32], cfg: ObservationConfig, k: int, poo
     step_speed = 0.5 * (own[:, :-1] + own[:, 1:])  # (n_obs, frames - 1), m/s
     turn = (np.stack([observer_turn(x[:, RL, j - frames], x[:, RL, j - frames + 1], step_speed[:, j], cfg)
                       for j in range(frames - 1)], axis=1) if ego_motion else None)
-    rows = vehicle_rows(x[:, [HV, AV], -frames:], cfg, k, turn, step_speed, fill)
+    rows = vehicle_rows(x[:, [HV, AV], -frames:], cfg, k, turn, step_speed, fill, smooth)
     out = np.concatenate([mv_peak[:, -2:], road, rows.reshape(n_obs, -1)], axis=1, dtype=np.float32)
     return out.reshape(*lead, -1)
 
@@ -134,7 +137,8 @@ def observer_turn(road_old: NDArray[np.float32], road_new: NDArray[np.float32], 
 
 
 def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn: NDArray[np.float64] | None = None,
-                 speed: NDArray[np.float32] | None = None, fill: bool = False) -> NDArray[np.float32]:
+                 speed: NDArray[np.float32] | None = None, fill: bool = False,
+                 smooth: bool = False) -> NDArray[np.float32]:
     """``(N, k, PER_VEHICLE)``: the ``k`` nearest vehicles of the newest frame of ``veh``
     ``(N, 2 channels HV and AV, F frames oldest first, H, W)``, each followed back through
     the older frames. With ``turn`` and ``speed`` ``(N, F - 1)``, the observer's motion
@@ -153,7 +157,9 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
     followed back to, and that has a motion of its own (its track through the frames before
     it holds two places), is put back one step on along that motion when the place lands
     inside the map; its row is that of a vehicle of the newest frame (a car that left the
-    view or hid behind another is put back as well, for one step)."""
+    view or hid behind another is put back as well, for one step). With ``smooth``, a tracked
+    vehicle's place (and a lost one's, before its step on) is its fitted line's at its own
+    frame."""
     n_obs, _, f, h, _ = veh.shape
     rows = np.zeros((n_obs, k, PER_VEHICLE), dtype=np.float32)
     labels, n = ndimage.label(veh > 0, _STRUCTURE)
@@ -184,16 +190,19 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
         bx += speed[b_obs, f - 2].astype(np.float64) * (f - 1 - b_frame) * STEP_S
     group = b_obs * 2 + b_ch
     new = np.flatnonzero(b_frame == f - 1)
-    dx, dy, matched, claimed = _track(new, b_frame, group, bx, by, f)
+    dx, dy, matched, claimed, fitted = _track(new, b_frame, group, bx, by, f)
+    bx, by = bx.copy(), by.copy()
+    if smooth:
+        bx[new], by[new] = fitted
     if fill:
         lost = np.setdiff1d(np.flatnonzero(b_frame == f - 2), claimed)
-        lx, ly, moving, _ = _track(lost, b_frame, group, bx, by, f - 1)
-        px, py = bx[lost] + lx * STEP_S, by[lost] + ly * STEP_S
+        lx, ly, moving, _, (fx, fy) = _track(lost, b_frame, group, bx, by, f - 1)
+        px, py = (fx, fy) if smooth else (bx[lost], by[lost])
+        px, py = px + lx * STEP_S, py + ly * STEP_S
         back = (moving > 0) & (px >= -cfg.behind) & (px < cfg.width * cfg.resolution - cfg.behind) & (
             np.abs(py) < 0.5 * h * cfg.resolution)
         lost = lost[back]
         new = np.concatenate([new, lost])
-        bx, by = bx.copy(), by.copy()
         bx[lost], by[lost] = px[back], py[back]
         dx, dy, matched = (np.concatenate([a, b[back]]) for a, b in ((dx, lx), (dy, ly), (matched, moving)))
     # Nearest first within each observation; the first k of each are kept.
@@ -209,11 +218,13 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
 
 def _track(new: NDArray[np.int64], b_frame: NDArray[np.int64], group: NDArray[np.int64], bx: NDArray[np.float64],
            by: NDArray[np.float64], f: int
-           ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64]]:
+           ) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], NDArray[np.int64],
+                      tuple[NDArray[np.float64], NDArray[np.float64]]]:
     """For blobs ``new`` of frame ``f`` − 1 (frames counted from 0): the slope (x, y) of the
     places of each one's track back through the frames before (:func:`vehicle_rows`), 1
-    where the track holds an older place (0, 0 and 0 elsewhere), and the blobs of frame
-    ``f`` − 2 that some track took."""
+    where the track holds an older place (0, 0 and 0 elsewhere), the blobs of frame
+    ``f`` − 2 that some track took, and the fitted line's place (x, y) at frame ``f`` − 1
+    (the blob's own where the track holds one place)."""
     x0, y0 = bx[new], by[new]
     # Least-squares sums over each track's places; time in steps, 0 at the newest frame.
     npts, st, stt = np.ones(len(new)), np.zeros(len(new)), np.zeros(len(new))  # places, Σt, Σt²
@@ -246,7 +257,9 @@ def _track(new: NDArray[np.int64], b_frame: NDArray[np.int64], group: NDArray[np
         var = stt[fit] - st[fit] ** 2 / npts[fit]
         ux[fit] = (stx[fit] - st[fit] * sx[fit] / npts[fit]) / var
         uy[fit] = (sty[fit] - st[fit] * sy[fit] / npts[fit]) / var
-    return ux / STEP_S, uy / STEP_S, (npts >= 2).astype(np.float64), claimed
+    tbar = st / npts
+    fitted = (sx / npts - ux * tbar, sy / npts - uy * tbar)  # the line at t = 0
+    return ux / STEP_S, uy / STEP_S, (npts >= 2).astype(np.float64), claimed, fitted
 
 
 def _nearest(qx: NDArray[np.float64], qy: NDArray[np.float64], qgroup: NDArray[np.int64], cand: NDArray[np.int64],

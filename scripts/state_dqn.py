@@ -40,7 +40,9 @@ newest frames and fits its motion; ``--fill`` (with ``--track-frames`` 3 or 4) p
 the newest frame lost (the sensor drops each from a frame with probability 0.1) back one step
 on along its track. ``--sensor-noise [PARTS]`` (with ``--exact-vehicles``) gives the exact
 rows the map's sensor noise (:func:`sensor_noise`): what a perfect detector of one frame
-would give. ``--drop velocity,heading,crashed`` zeroes
+would give; ``--sensor-frames F`` that noise as a tracker that followed each vehicle without
+error through F frames would read it. ``--smooth`` (with ``--track-frames`` 3 or 4) places
+each tracked vehicle on its fitted line. ``--drop velocity,heading,crashed`` zeroes
 those columns of every vehicle row (:data:`DROPPABLE`) to ask which of them matters.
 
 It is a diagnostic reference, not the paper's method: the state vector has no raster and no
@@ -56,8 +58,8 @@ of ``latentdrive evaluate --envs 16``, and are compared pairwise (McNemar). Usag
 
     python scripts/state_dqn.py [--scenarios roundabout,intersection,merge,exit,highway]
         [--steps 100000] [--seed 0] [--arch attention|mlp] [--no-route] [--no-pose] [--no-time] [--view-box]
-        [--reader state|map|blobs] [--road-pool CELLS] [--ego-motion] [--track-frames F] [--fill]
-        [--exact-vehicles [--sensor-noise [PARTS]]] [--drop NAMES] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
+        [--reader state|map|blobs] [--road-pool CELLS] [--ego-motion] [--track-frames F] [--fill] [--smooth]
+        [--exact-vehicles [--sensor-noise [PARTS] [--sensor-frames F]]] [--drop NAMES] [--aux SCALE] [--precision auto|fp32|bf16] [--compare RUN] [--outcomes FILE.json]
         [--set dqn.KEY=VALUE ...] [--set reward.KEY=VALUE ...] [--out FILE.csv]
     python scripts/state_dqn.py --pair A.json B.json
 
@@ -265,6 +267,7 @@ class BlobReading(NamedTuple):
     frames: int = 2
     noise: NoiseConfig | None = None  #: with ``exact_vehicles``, the sensor noise its rows carry
     fill: bool = False  #: vehicles the newest frame lost put back along their tracks
+    smooth: bool = False  #: tracked vehicles placed on their fitted lines
 
 
 #: The detector's defaults.
@@ -273,21 +276,26 @@ BLOBS = BlobReading()
 
 def blob_reading(args: argparse.Namespace) -> BlobReading:
     return BlobReading(args.road_pool, args.exact_vehicles, drop_columns(args.drop), args.ego_motion, args.track_frames,
-                       sensor_config(args.sensor_noise), args.fill)
+                       sensor_config(args.sensor_noise, args.sensor_frames), args.fill, args.smooth)
 
 
 #: ``--sensor-noise``'s names for the parts of :class:`~latentdrive.config.NoiseConfig`.
 NOISE_PARTS = {"position": "position_std", "speed": "speed_std", "heading": "heading_std", "miss": "miss_prob"}
 
 
-def sensor_config(names: str | None) -> NoiseConfig | None:
+def sensor_config(names: str | None, frames: int = 1) -> NoiseConfig | None:
     """The map's default sensor noise restricted to ``names`` (comma-separated
-    :data:`NOISE_PARTS` keys, or ``all``), the other parts zero; ``None`` for ``None``."""
+    :data:`NOISE_PARTS` keys, or ``all``), the other parts zero; ``None`` for ``None``. With
+    ``frames`` F > 1, what a tracker that followed every vehicle without error through F
+    frames of independent noise would read: each standard deviation divided by √F (the mean
+    of F draws) and the miss probability raised to the power F (missed in every frame)."""
     if names is None:
         return None
     parts = list(NOISE_PARTS) if names == "all" else [n for n in names.split(",") if n]
     default = NoiseConfig.model_validate({})
-    return NoiseConfig.model_validate({field: getattr(default, field) if part in parts else 0.0
+    scaled = {"position_std": default.position_std / frames**0.5, "speed_std": default.speed_std / frames**0.5,
+              "heading_std": default.heading_std / frames**0.5, "miss_prob": default.miss_prob**frames}
+    return NoiseConfig.model_validate({field: scaled[field] if part in parts else 0.0
                                        for part, field in NOISE_PARTS.items()})
 
 
@@ -340,7 +348,7 @@ def read_blobs(inp: PolicyInput, specs: list[Any], k: int, opts: BlobReading) ->
     """``--reader blobs``'s input ``(num_envs, n_av, F)``: :func:`blob_features` of the maps,
     with ``opts.exact_vehicles`` the rows of :func:`exact_in_view` in place of the vehicles
     found (the same layout), and ``opts.drop``'s columns zeroed."""
-    x = blob_features(inp.obs, GRID, k, opts.road_pool, opts.ego_motion, opts.frames, opts.fill)
+    x = blob_features(inp.obs, GRID, k, opts.road_pool, opts.ego_motion, opts.frames, opts.fill, opts.smooth)
     rows = x[..., -k * PER_NEIGHBOUR:].reshape(*x.shape[:-1], k, PER_NEIGHBOUR)  # a view into x
     if opts.exact_vehicles:
         rows[...] = exact_in_view(inp, specs, k, opts.noise)
@@ -448,8 +456,12 @@ def train(args: argparse.Namespace, scenarios: list[str], cfg: DQNConfig,
         found = "exact vehicles in the map's view" if args.exact_vehicles else "vehicles found in the map"
         if args.sensor_noise is not None:
             found += f" with the map's sensor noise ({args.sensor_noise})"
+        if args.sensor_frames > 1:
+            found += f" averaged over {args.sensor_frames} frames"
         if args.fill:
             found += ", the lost ones put back"
+        if args.smooth:
+            found += ", placed on their tracks"
         n_in, what = ego + args.neighbours * PER_NEIGHBOUR, f"{found}, road pooled {args.road_pool}"
         net = EgoAttention(ego, PER_NEIGHBOUR, args.neighbours, args.hidden)
         store = LatentStore(capacity, (n_in,))
@@ -591,12 +603,18 @@ def main() -> int:
     ap.add_argument("--fill", action="store_true",
                     help="with --reader blobs and --track-frames 3 or 4: put a vehicle the newest frame lost back "
                          "one step on along its track (scripts/map_blobs.py)")
+    ap.add_argument("--smooth", action="store_true",
+                    help="with --reader blobs and --track-frames 3 or 4: place each tracked vehicle on its fitted "
+                         "line instead of its newest blob (scripts/map_blobs.py)")
     ap.add_argument("--exact-vehicles", action="store_true",
                     help="with --reader blobs: the exact-state rows of the vehicles inside the map's view in place "
                          "of those the detector finds")
     ap.add_argument("--sensor-noise", nargs="?", const="all", metavar="PARTS",
                     help="with --exact-vehicles: the exact rows carry the map's sensor noise, all of it or the "
                          f"comma-separated parts named ({', '.join(NOISE_PARTS)})")
+    ap.add_argument("--sensor-frames", type=int, default=1, metavar="F",
+                    help="with --sensor-noise: the noise a perfect tracker through F frames would read (standard "
+                         "deviations / sqrt(F), miss probability to the power F)")
     ap.add_argument("--aux", type=float, default=0.0, metavar="SCALE",
                     help="with --reader map: after each Q update, also train the reader to predict, from the map, "
                          "the AV's speeds and its 12 nearest vehicles inside the map's view (exact states), by "
@@ -641,8 +659,11 @@ def main() -> int:
         ap.error("--exact-vehicles, --ego-motion, --track-frames and --road-pool only with --reader blobs")
     if not 2 <= args.track_frames <= grid.frames:
         ap.error(f"--track-frames must be 2 to the map's {grid.frames} frames, got {args.track_frames}")
-    if args.fill and (args.reader != "blobs" or args.track_frames < 3):
-        ap.error("--fill follows a lost vehicle through two older frames: it needs --reader blobs and --track-frames 3 or 4")
+    if (args.fill or args.smooth) and (args.reader != "blobs" or args.track_frames < 3):
+        ap.error("--fill and --smooth follow a vehicle through two older frames: they need --reader blobs and "
+                 "--track-frames 3 or 4")
+    if args.sensor_frames < 1 or (args.sensor_frames != 1 and args.sensor_noise is None):
+        ap.error(f"--sensor-frames takes a count of at least 1, with --sensor-noise, got {args.sensor_frames}")
     names = list(filter(None, args.drop.split(",")))
     if any(n not in DROPPABLE for n in names) or (args.drop and args.reader != "blobs"):
         ap.error(f"--drop takes {', '.join(DROPPABLE)} with --reader blobs, got {args.drop!r}")

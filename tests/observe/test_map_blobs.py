@@ -231,3 +231,21 @@ def test_fill_leaves_a_car_that_the_newest_frame_holds_and_one_that_drove_out_of
     np.testing.assert_array_equal(MOD["blob_features"](m, CFG, 2, frames=3, fill=True)[0, ego:], plain)
     with pytest.raises(ValueError, match="frames must be at least 3"):
         MOD["blob_features"](m, CFG, 2, frames=2, fill=True)
+
+
+def test_smooth_places_a_tracked_car_on_its_fitted_line():
+    m = np.zeros((1, 4, 4, CFG.height, CFG.width), dtype=np.float32)
+    # One cell at columns 20, 22, 25, 26 in frames t = −3 to 0: about two cells a step, with
+    # noise; the least-squares line through them passes column 26.4 at t = 0, not 26.
+    for frame, col in enumerate((20, 22, 25, 26)):
+        m[0, HV, frame, 8:10, col:col + 1] = 1.0
+    t = np.array([-3.0, -2.0, -1.0, 0.0])
+    c = np.array([20.0, 22.0, 25.0, 26.0])
+    slope, at0 = np.polyfit(t, c, 1)
+    ego = MOD["ego_size"](CFG, 4)
+    raw = MOD["blob_features"](m, CFG, 1, frames=4)[0, ego:]
+    fit = MOD["blob_features"](m, CFG, 1, frames=4, smooth=True)[0, ego:]
+    np.testing.assert_allclose(raw[0] * 50, (26 + 0.5) * 1.5 - 32, atol=1e-5)  # its newest blob
+    np.testing.assert_allclose(fit[0] * 50, (at0 + 0.5) * 1.5 - 32, atol=1e-5)
+    np.testing.assert_allclose([fit[2] * 20, raw[2] * 20], slope * 1.5, atol=1e-5)
+    np.testing.assert_array_equal(np.delete(fit, 0), np.delete(raw, 0))

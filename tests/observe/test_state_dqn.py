@@ -128,7 +128,7 @@ def test_each_stored_transition_leads_one_decision_on_across_auto_resets():
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=300, radius=80.0,
                               no_route=False, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1, reader="state", precision="fp32", aux=0.0, road_pool=4, exact_vehicles=False, drop="", ego_motion=False, track_frames=2, sensor_noise=None, fill=False)
+                              eval_every=0, eval_episodes=1, reader="state", precision="fp32", aux=0.0, road_pool=4, exact_vehicles=False, drop="", ego_motion=False, track_frames=2, sensor_noise=None, fill=False, smooth=False, sensor_frames=1)
     cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
     _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
     n = replay.added
@@ -205,7 +205,7 @@ def test_the_map_reader_stores_each_transition_one_decision_on_across_auto_reset
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=200, radius=80.0,
                               no_route=True, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1, reader="map", precision="fp32", aux=0.0, road_pool=4, exact_vehicles=False, drop="", ego_motion=False, track_frames=2, sensor_noise=None, fill=False)
+                              eval_every=0, eval_episodes=1, reader="map", precision="fp32", aux=0.0, road_pool=4, exact_vehicles=False, drop="", ego_motion=False, track_frames=2, sensor_noise=None, fill=False, smooth=False, sensor_frames=1)
     cfg = DQNConfig(n_step=1, learning_starts=100, batch_size=8)
     _, replay = MOD["train"](args, ["roundabout"], cfg, RewardConfig())
     n = replay.added
@@ -315,7 +315,7 @@ def test_the_blob_reader_stores_what_the_detector_finds_in_each_map():
 
     args = argparse.Namespace(seed=0, arch="attention", neighbours=4, hidden=16, envs=4, steps=200, radius=80.0,
                               no_route=True, no_pose=False, no_time=False, view_box=None, out=None,
-                              eval_every=0, eval_episodes=1, reader="blobs", precision="fp32", aux=0.0, road_pool=8, exact_vehicles=False, drop="", ego_motion=False, track_frames=2, sensor_noise=None, fill=False)
+                              eval_every=0, eval_episodes=1, reader="blobs", precision="fp32", aux=0.0, road_pool=8, exact_vehicles=False, drop="", ego_motion=False, track_frames=2, sensor_noise=None, fill=False, smooth=False, sensor_frames=1)
     net, replay = MOD["train"](args, ["highway"], DQNConfig(n_step=1, learning_starts=100, batch_size=8), RewardConfig())
     n = replay.added
     ego = MOD["blob_ego_size"](ObservationConfig(), 8)
@@ -384,7 +384,9 @@ def test_an_unknown_column_to_drop_is_refused(monkeypatch, capsys):
     (["--reader", "blobs", "--track-frames", "5"], "--track-frames must be 2 to the map's 4 frames, got 5"),
     (["--reader", "blobs", "--sensor-noise"], "--sensor-noise takes all or position, speed, heading, miss, with --exact-vehicles"),
     (["--reader", "blobs", "--exact-vehicles", "--sensor-noise", "miss,colour"], "got 'miss,colour'"),
-    (["--reader", "blobs", "--fill"], "--fill follows a lost vehicle through two older frames"),
+    (["--reader", "blobs", "--fill"], "--fill and --smooth follow a vehicle through two older frames"),
+    (["--reader", "blobs", "--track-frames", "2", "--smooth"], "they need --reader blobs and --track-frames 3 or 4"),
+    (["--reader", "blobs", "--exact-vehicles", "--sensor-frames", "4"], "--sensor-frames takes a count of at least 1, with --sensor-noise"),
 ])
 def test_blob_reader_options_out_of_place_are_refused(argv, message, monkeypatch, capsys):
     monkeypatch.setattr("sys.argv", ["state_dqn.py", *argv])
@@ -436,6 +438,9 @@ def test_sensor_noise_is_the_same_for_the_same_rows_and_spares_absent_ones():
     np.testing.assert_array_equal(only_miss[kept], rows[kept])
     assert MOD["sensor_config"]("position,speed").miss_prob == 0.0
     assert MOD["sensor_config"]("all") == NoiseConfig() and MOD["sensor_config"](None) is None
+    four = MOD["sensor_config"]("all", 4)  # a perfect tracker's mean of four frames
+    assert (four.position_std, four.speed_std, four.heading_std) == (0.375, 0.5, 0.01)
+    assert abs(four.miss_prob - 1e-4) < 1e-12
 
 
 def test_exact_vehicles_with_sensor_noise_keep_the_view_and_the_nearest_first_order():
