@@ -11,7 +11,7 @@ of its motion against the exact velocity difference (m/s), beside the spread of 
 values, and the share of observations whose nearest vehicle found lies more than 3 m from
 the nearest exact one (a missed or misplaced car ahead). Usage::
 
-    python scripts/blob_check.py [--ego-motion] [--frames 2] [--fill] [--envs 8] [--steps 80] [--seed 11] [--within 3]
+    python scripts/blob_check.py [--ego-motion] [--frames 2] [--fill] [--smooth] [--envs 8] [--steps 80] [--seed 11] [--within 3]
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ K = 16
 
 
 def pairs(scenario: str, envs: int, steps: int, seed: int, within: float, ego_motion: bool,
-          frames: int = 2, fill: bool = False) -> tuple[int, int, np.ndarray, np.ndarray]:
+          frames: int = 2, fill: bool = False, smooth: bool = False) -> tuple[int, int, np.ndarray, np.ndarray]:
     """The exact vehicles seen, those found, one row per pair (distance, matched, found
     motion x and y, exact velocity difference x and y), and for each observation with both,
     the distance between the nearest vehicle found and the nearest exact one, metres."""
@@ -53,7 +53,7 @@ def pairs(scenario: str, envs: int, steps: int, seed: int, within: float, ego_mo
         inp = _STATE["next_input"](rec, names, vec.simulator)
         exact = _STATE["features"](inp, specs, K, 80.0, False, False, _STATE["MAP_VIEW"])[..., -K * PER_NEIGHBOUR:]
         found = _BLOBS["blob_features"](rec.next_obs, cfg, K, ego_motion=ego_motion, frames=frames,
-                                         fill=fill)[..., ego:]
+                                         fill=fill, smooth=smooth)[..., ego:]
         for e, a in zip(*np.nonzero(rec.agents.active), strict=True):
             s = exact[e, a].reshape(K, PER_NEIGHBOUR)
             b = found[e, a].reshape(K, PER_NEIGHBOUR)
@@ -75,6 +75,7 @@ def main() -> int:
     ap.add_argument("--ego-motion", action="store_true", help="the detector's --ego-motion (scripts/map_blobs.py)")
     ap.add_argument("--frames", type=int, default=2, help="the detector's frames (scripts/map_blobs.py)")
     ap.add_argument("--fill", action="store_true", help="the detector's fill (scripts/map_blobs.py; --frames 3 or 4)")
+    ap.add_argument("--smooth", action="store_true", help="the detector's smooth (scripts/map_blobs.py; --frames 3 or 4)")
     ap.add_argument("--envs", type=int, default=8)
     ap.add_argument("--steps", type=int, default=80, help="decisions per environment")
     ap.add_argument("--seed", type=int, default=11)
@@ -82,13 +83,13 @@ def main() -> int:
     args = ap.parse_args()
     if min(args.envs, args.steps) < 1 or args.within <= 0 or not 2 <= args.frames <= ObservationConfig().frames:
         ap.error(f"--envs and --steps must be at least 1, --within above 0, --frames 2 to {ObservationConfig().frames}")
-    if args.fill and args.frames < 3:
-        ap.error("--fill follows a lost vehicle through two older frames: it needs --frames 3 or 4")
+    if (args.fill or args.smooth) and args.frames < 3:
+        ap.error("--fill and --smooth follow a vehicle through two older frames: they need --frames 3 or 4")
     print("scenario      exact  found  paired  median m  matched  motion error m/s: median  90%   exact spread (sd x, y)"
           "  nearest found > 3 m from nearest exact")
     for scenario in SCENARIOS:
         n_exact, n_found, p, near = pairs(scenario, args.envs, args.steps, args.seed, args.within, args.ego_motion, args.frames,
-                                     args.fill)
+                                     args.fill, args.smooth)
         m = p[p[:, 1] > 0]
         err = np.hypot(m[:, 2] - m[:, 4], m[:, 3] - m[:, 5])
         line = f"{scenario:12s} {n_exact:6d} {n_found:6d} {len(p) / max(n_exact, 1):7.2f} "
