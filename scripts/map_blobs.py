@@ -43,6 +43,9 @@ STEP_S = 1.0
 
 #: Metres within which a track with a fitted line takes the vehicle nearest its prediction.
 TRACK_GATE = 6.0
+#: Metres from every vehicle of the newest frame that a vehicle put back by ``fill`` keeps:
+#: about one car's length and twice the sensor's position noise.
+FILL_CLEAR = 4.0
 #: Metres within which a vehicle of the newest frame is matched to one of the frame before:
 #: a car 15 m/s faster or slower than the observer, with its position noise, moves about
 #: that far in a step of one second.
@@ -79,8 +82,8 @@ def blob_features(maps: NDArray[np.float32], cfg: ObservationConfig, k: int, poo
         raise ValueError(f"pool must divide the map's {h} x {w} cells, got {pool}")
     if not 2 <= frames <= t:
         raise ValueError(f"frames must be 2 to the stack's {t}, got {frames}")
-    if fill and frames < 3:
-        raise ValueError(f"fill follows a lost vehicle through two older frames: frames must be at least 3, got {frames}")
+    if (fill or smooth) and frames < 3:
+        raise ValueError(f"fill and smooth follow a vehicle through two older frames: frames must be at least 3, got {frames}")
     x = maps.reshape(-1, 4, t, h, w)
     n_obs = x.shape[0]
     mv_peak = x[:, MV, -frames:].reshape(n_obs, frames, -1).max(-1)  # |v| / max_speed in each frame
@@ -156,8 +159,10 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
     ``miss_prob``, so a vehicle of the frame before that no vehicle of the newest frame
     followed back to, and that has a motion of its own (its track through the frames before
     it holds two places), is put back one step on along that motion when the place lands
-    inside the map; its row is that of a vehicle of the newest frame (a car that left the
-    view or hid behind another is put back as well, for one step). With ``smooth``, a tracked
+    inside the map, clear of the newest frame's vehicles, and while the newest frame holds
+    fewer vehicles than the frame before (:func:`_put_back`); its row is that of a vehicle of
+    the newest frame (a car that left the view or hid behind another may be put back as
+    well, for one step). With ``smooth``, a tracked
     vehicle's place (and a lost one's, before its step on) is its fitted line's at its own
     frame."""
     n_obs, _, f, h, _ = veh.shape
@@ -199,8 +204,9 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
         lx, ly, moving, _, (fx, fy) = _track(lost, b_frame, group, bx, by, f - 1)
         px, py = (fx, fy) if smooth else (bx[lost], by[lost])
         px, py = px + lx * STEP_S, py + ly * STEP_S
-        back = (moving > 0) & (px >= -cfg.behind) & (px < cfg.width * cfg.resolution - cfg.behind) & (
+        inside = (px >= -cfg.behind) & (px < cfg.width * cfg.resolution - cfg.behind) & (
             np.abs(py) < 0.5 * h * cfg.resolution)
+        back = _put_back(lost, moving > 0, inside, px, py, new, b_frame, group, bx, by, f)
         lost = lost[back]
         new = np.concatenate([new, lost])
         bx[lost], by[lost] = px[back], py[back]
@@ -214,6 +220,33 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
                       b_ch[new].astype(np.float64), count[new] / 10.0, np.ones(len(new))], axis=1)
     rows[owner[keep], rank[keep]] = feats[order[keep]]
     return rows
+
+
+def _put_back(lost: NDArray[np.int64], moving: NDArray[np.bool_], inside: NDArray[np.bool_], px: NDArray[np.float64],
+              py: NDArray[np.float64], new: NDArray[np.int64], b_frame: NDArray[np.int64], group: NDArray[np.int64],
+              bx: NDArray[np.float64], by: NDArray[np.float64], f: int) -> NDArray[np.bool_]:
+    """Which of the blobs ``lost`` (of frame ``f`` − 2, unclaimed by the newest frame's
+    tracks) :func:`vehicle_rows`' fill puts back at ``(px, py)``: those with a motion of their
+    own whose place lies inside the map and at least :data:`FILL_CLEAR` metres from every
+    vehicle of the same group in the newest frame (``new``; a car there is most likely the
+    same one, followed by a track that claimed another), and in each group at most as many
+    as the frame before holds more vehicles than the newest frame (a frame that lost none
+    gets none back), farthest from the newest frame's vehicles first."""
+    if len(lost) == 0:
+        return np.zeros(0, dtype=bool)
+    near = _nearest(px, py, group[lost], new, group, bx, by, np.full(len(lost), 1e9))  # any distance
+    clear = np.where(near >= 0, np.hypot(px - bx[near], py - by[near]), np.inf)
+    ok = moving & inside & (clear >= FILL_CLEAR)
+    n_groups = int(group.max()) + 1
+    older = np.bincount(group[b_frame == f - 2], minlength=n_groups)
+    newest = np.bincount(group[new], minlength=n_groups)
+    allowed = np.maximum(older - newest, 0)[group[lost]]
+    # Rank within each group, farthest clear first; candidates that are not ok rank last.
+    order = np.lexsort((-np.where(ok, clear, -1.0), group[lost]))
+    g = group[lost][order]
+    rank = np.empty(len(lost), dtype=np.int64)
+    rank[order] = np.arange(len(order)) - np.searchsorted(g, g, "left")
+    return ok & (rank < allowed)
 
 
 def _track(new: NDArray[np.int64], b_frame: NDArray[np.int64], group: NDArray[np.int64], bx: NDArray[np.float64],

@@ -659,6 +659,8 @@ def main() -> int:
         ap.error("--exact-vehicles, --ego-motion, --track-frames and --road-pool only with --reader blobs")
     if not 2 <= args.track_frames <= grid.frames:
         ap.error(f"--track-frames must be 2 to the map's {grid.frames} frames, got {args.track_frames}")
+    if (args.fill or args.smooth) and args.exact_vehicles:
+        ap.error("--fill and --smooth act on the vehicles the detector finds, not on --exact-vehicles")
     if (args.fill or args.smooth) and (args.reader != "blobs" or args.track_frames < 3):
         ap.error("--fill and --smooth follow a vehicle through two older frames: they need --reader blobs and "
                  "--track-frames 3 or 4")

@@ -161,7 +161,8 @@ def test_with_the_observers_motion_a_car_keeping_its_course_has_the_relative_vel
 
 def test_the_check_pairs_found_vehicles_with_exact_ones_nearby():
     check = runpy.run_path(str(Path(__file__).resolve().parents[2] / "scripts" / "blob_check.py"), run_name="check")
-    n_exact, n_found, p, near = check["pairs"]("highway", 2, 6, 4, 3.0, False)
+    n_exact, n_found, p, near, covered, spurious = check["pairs"]("highway", 2, 6, 4, 3.0, False)
+    assert 0.5 * n_exact < covered <= n_exact and 0 <= spurious < 0.5 * n_found
     assert n_exact > 0 and 0 < len(p) <= n_found and p.shape[1] == 6 and len(near) and np.median(near) < 1.5
     assert (p[:, 0] <= 3.0).all() and np.median(p[:, 0]) < 1.5
     matched = p[p[:, 1] > 0]
@@ -229,8 +230,9 @@ def test_fill_leaves_a_car_that_the_newest_frame_holds_and_one_that_drove_out_of
     ego = MOD["ego_size"](CFG, 4)
     plain = MOD["blob_features"](m, CFG, 2, frames=3)[0, ego:]
     np.testing.assert_array_equal(MOD["blob_features"](m, CFG, 2, frames=3, fill=True)[0, ego:], plain)
-    with pytest.raises(ValueError, match="frames must be at least 3"):
-        MOD["blob_features"](m, CFG, 2, frames=2, fill=True)
+    for option in ("fill", "smooth"):
+        with pytest.raises(ValueError, match="frames must be at least 3"):
+            MOD["blob_features"](m, CFG, 2, frames=2, **{option: True})
 
 
 def test_smooth_places_a_tracked_car_on_its_fitted_line():
@@ -249,3 +251,32 @@ def test_smooth_places_a_tracked_car_on_its_fitted_line():
     np.testing.assert_allclose(fit[0] * 50, (at0 + 0.5) * 1.5 - 32, atol=1e-5)
     np.testing.assert_allclose([fit[2] * 20, raw[2] * 20], slope * 1.5, atol=1e-5)
     np.testing.assert_array_equal(np.delete(fit, 0), np.delete(raw, 0))
+
+
+def test_fill_puts_nothing_back_where_no_frame_lost_a_car_though_two_tracks_took_the_same_one():
+    # Two cars 9 m (six cells) apart, each moving 9 m a step, in all three frames: both newest
+    # cars are followed back to the same car of the frame before (the nearest), which leaves
+    # the other one unclaimed. Nothing was lost, so nothing is put back.
+    m = np.zeros((1, 4, 3, CFG.height, CFG.width), dtype=np.float32)
+    for frame in range(3):
+        for start in (10, 16):
+            m[0, HV, frame, 8:10, start + 6 * frame:start + 6 * frame + 2] = 1.0
+    ego = MOD["ego_size"](CFG, 4)
+    plain = MOD["blob_features"](m, CFG, 4, frames=3)[0, ego:]
+    assert plain.reshape(4, PER_NEIGHBOUR)[:, 8].sum() == 2
+    np.testing.assert_array_equal(MOD["blob_features"](m, CFG, 4, frames=3, fill=True)[0, ego:], plain)
+
+
+def test_fill_does_not_put_a_car_back_onto_a_car_of_the_newest_frame():
+    def maps(row: int) -> np.ndarray:
+        m = np.zeros((1, 4, 3, CFG.height, CFG.width), dtype=np.float32)
+        m[0, HV, 0, 8:10, 20:22] = 1.0  # car A, 3 m a step, lost in the newest frame:
+        m[0, HV, 1, 8:10, 22:24] = 1.0  # one step on it would lie at columns 24-25, rows 8-9
+        m[0, HV, 1:, row:row + 2, 26:28] = 1.0  # car C, at rest, in the last two frames
+        return m
+
+    ego = MOD["ego_size"](CFG, 4)
+    for row, back in ((8, 0), (20, 1)):  # C 3 m ahead of A's place (within FILL_CLEAR), or 18 m aside
+        plain = MOD["blob_features"](maps(row), CFG, 4, frames=3)[0, ego:].reshape(4, PER_NEIGHBOUR)
+        filled = MOD["blob_features"](maps(row), CFG, 4, frames=3, fill=True)[0, ego:].reshape(4, PER_NEIGHBOUR)
+        assert plain[:, 8].sum() == 1 and filled[:, 8].sum() == 1 + back
