@@ -38,10 +38,11 @@ motion after carrying the older frame into the newest frame's axes by the AV's o
 step (``scripts/map_blobs.py``); ``--track-frames F`` follows each vehicle through the F
 newest frames and fits its motion; ``--fill`` (with ``--track-frames`` 3 or 4) puts a vehicle
 the newest frame lost (the sensor drops each from a frame with probability 0.1) back one step
-on along its track. ``--sensor-noise [PARTS]`` (with ``--exact-vehicles``) gives the exact
-rows the map's sensor noise (:func:`sensor_noise`): what a perfect detector of one frame
-would give; ``--sensor-frames F`` that noise as a tracker that followed each vehicle without
-error through F frames would read it. ``--smooth`` (with ``--track-frames`` 3 or 4) places
+on along its track, where that place is clear of the newest frame's vehicles and the newest
+frame holds fewer vehicles than the one before. ``--sensor-noise [PARTS]`` (with ``--exact-vehicles``) gives the exact
+rows the map's sensor noise (:func:`sensor_noise`): what a perfect detector of the sensor's
+noisy vehicles would give, one frame at a time; ``--sensor-frames F`` that noise as a
+tracker that followed each vehicle without error through F frames would read it. ``--smooth`` (with ``--track-frames`` 3 or 4) places
 each tracked vehicle on its fitted line. ``--drop velocity,heading,crashed`` zeroes
 those columns of every vehicle row (:data:`DROPPABLE`) to ask which of them matters.
 
