@@ -30,6 +30,7 @@ from numpy.typing import NDArray
 from scipy import ndimage
 
 from latentdrive.config import ObservationConfig
+from latentdrive.observe.state import view_box
 from latentdrive.observe.velocitymap import AV, HV, MV, RL
 
 #: Values per vehicle; equal to :data:`latentdrive.observe.state.PER_NEIGHBOUR`, whose
@@ -196,7 +197,6 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
     group = b_obs * 2 + b_ch
     new = np.flatnonzero(b_frame == f - 1)
     dx, dy, matched, claimed, fitted = _track(new, b_frame, group, bx, by, f)
-    bx, by = bx.copy(), by.copy()
     if smooth:
         bx[new], by[new] = fitted
     if fill:
@@ -204,8 +204,8 @@ def vehicle_rows(veh: NDArray[np.float32], cfg: ObservationConfig, k: int, turn:
         lx, ly, moving, _, (fx, fy) = _track(lost, b_frame, group, bx, by, f - 1)
         px, py = (fx, fy) if smooth else (bx[lost], by[lost])
         px, py = px + lx * STEP_S, py + ly * STEP_S
-        inside = (px >= -cfg.behind) & (px < cfg.width * cfg.resolution - cfg.behind) & (
-            np.abs(py) < 0.5 * h * cfg.resolution)
+        behind, ahead, side = view_box(cfg)
+        inside = (px >= -behind) & (px < ahead) & (np.abs(py) < side)
         back = _put_back(lost, moving > 0, inside, px, py, new, b_frame, group, bx, by, f)
         lost = lost[back]
         new = np.concatenate([new, lost])

@@ -164,12 +164,17 @@ def features(inp: PolicyInput, specs: list[Any], k: int, radius: float, route: b
         x[..., TIME] = 0.0
     if view_box is not None:
         start = x.shape[-1] - k * PER_NEIGHBOUR
-        rows = x[..., start:].reshape(*x.shape[:2], k, PER_NEIGHBOUR).copy()
-        ahead, right = rows[..., 0] * 50.0, rows[..., 1] * 50.0
-        behind, front, side = view_box
-        rows[(ahead < -behind) | (ahead > front) | (np.abs(right) > side)] = 0.0
+        rows = outside_zeroed(x[..., start:].reshape(*x.shape[:2], k, PER_NEIGHBOUR), view_box)
         x[..., start:] = rows.reshape(*x.shape[:2], -1)
     return x
+
+
+def outside_zeroed(rows: NDArray[np.float32], view_box: tuple[float, float, float]) -> NDArray[np.float32]:
+    """Vehicle rows ``(..., PER_NEIGHBOUR)`` with those whose place lies outside ``view_box``
+    (metres behind, ahead, to each side) made absent (zero rows); a new array."""
+    behind, front, side = view_box
+    ahead, right = rows[..., 0] * 50.0, rows[..., 1] * 50.0
+    return np.where(((ahead < -behind) | (ahead > front) | (np.abs(right) > side))[..., None], 0.0, rows)
 
 
 #: ``--aux``'s targets: the AV's speed and lane speed and its :data:`AUX_NEIGHBOURS` nearest
@@ -374,9 +379,7 @@ def exact_in_view(inp: PolicyInput, specs: list[Any], k: int, noise: NoiseConfig
     rows = x[..., -IN_VIEW_SEARCH * PER_NEIGHBOUR:].reshape(*x.shape[:2], IN_VIEW_SEARCH, PER_NEIGHBOUR)
     if noise is not None:
         rows = sensor_noise(rows, noise)
-    behind, ahead, side = MAP_VIEW
-    rows = np.where(((rows[..., 0] * 50.0 < -behind) | (rows[..., 0] * 50.0 > ahead)
-                     | (np.abs(rows[..., 1]) * 50.0 > side))[..., None], 0.0, rows)
+    rows = outside_zeroed(rows, MAP_VIEW)
     # A stable sort of "absent" keeps the present rows first and in their nearest-first order.
     order = np.argsort(rows[..., -1] < 0.5, axis=-1, kind="stable")[..., :k]
     return np.take_along_axis(rows, order[..., None], axis=2).astype(np.float32)
