@@ -32,6 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
+from latentdrive.observe.objects import label_blobs
+
 __all__ = ["REACH_CELLS", "VehicleCounts", "bright_cell_reach", "label_blobs", "vehicle_counts"]
 
 #: Distances (cells) at which :func:`bright_cell_reach` counts drawn cells by default.
@@ -67,28 +69,6 @@ class VehicleCounts(NamedTuple):
     def precision(self) -> float:
         """Bright cells on or next to vehicles / bright cells (NaN without bright cells)."""
         return self.bright_on_vehicles / self.bright_cells if self.bright_cells else float("nan")
-
-
-def label_blobs(mask: Tensor) -> Tensor:
-    """8-connected components of boolean masks ``(N, H, W)`` → int64 labels ``(N, H, W)``.
-
-    Background is 0; every blob gets one label > 0, unique across the whole batch (the
-    largest flat index ``n·H·W + i·W + j + 1`` of its cells). Found by propagating the
-    maximum label to 3×3 neighbours inside the mask until nothing changes, so the number
-    of iterations is the largest blob's diameter in cells: a few for vehicles.
-    """
-    if mask.ndim != 3:
-        raise ValueError(f"expected masks of shape (N, H, W), got {tuple(mask.shape)}")
-    n, h, w = mask.shape
-    ids = torch.arange(1, n * h * w + 1, device=mask.device, dtype=torch.float64).view(n, 1, h, w)
-    m = mask.view(n, 1, h, w)
-    # float64 holds integers exactly up to 2**53, far beyond any batch of maps.
-    labels = torch.where(m, ids, torch.zeros_like(ids))
-    while True:
-        grown = torch.where(m, F.max_pool2d(labels, 3, stride=1, padding=1), labels)
-        if torch.equal(grown, labels):
-            return labels.view(n, h, w).to(torch.int64)
-        labels = grown
 
 
 def vehicle_counts(

@@ -45,6 +45,7 @@ from latentdrive.actions import N_ACTIONS
 from latentdrive.config import Config
 from latentdrive.models.attention import MapAttentionBody, Stem
 from latentdrive.models.bottleneck import BottleneckNetwork
+from latentdrive.models.objects import ObjectsBody
 
 __all__ = ["LATENT_MODES", "MODES", "Mode", "QNetwork", "VFANConfig"]
 
@@ -62,7 +63,8 @@ class VFANConfig(Config):
     strides: tuple[int, int] = Field((4, 2), description="Spatial strides of the first two layers (the third has stride 1).")
     temporal_kernel: int = Field(3, ge=1, le=8, description="Temporal kernel (frames) of the second and third layers, clipped to T.")
     hidden: int = Field(512, ge=8, le=4096, description="Width of the fully connected layer before the Q-values.")
-    reader: Literal["conv", "attention"] = Field("conv", description="How the raw map is read: 'conv', the paper's 3D-convolutional body (the fields above); 'attention', a convolutional stem to a grid of 6 m tokens that the observer's own token queries by multi-head attention, the same weights for every cell (latentdrive.models.attention; raw mode only; channels, kernels, strides and temporal_kernel do not apply).")
+    reader: Literal["conv", "attention", "objects"] = Field("conv", description="How the raw map is read: 'conv', the paper's 3D-convolutional body (the fields above); 'attention', a convolutional stem to a grid of 6 m tokens that the observer's own token queries by multi-head attention, the same weights for every cell (latentdrive.models.attention); 'objects', the vehicles of the newest frame found by a fixed rule (connected HV and AV cells), the objects_k nearest, which the observer's own embedding (its speed and the road around it) queries by multi-head attention (latentdrive.models.objects; no dueling head). Both others: raw mode only; channels, kernels, strides and temporal_kernel do not apply, attention_width and attention_heads do.")
+    objects_k: int = Field(16, ge=1, le=256, description="Vehicles the objects reader reads, nearest first (reader 'objects').")
     attention_width: int = Field(64, ge=8, le=1024, description="Token features of the attention reader (reader 'attention').")
     attention_heads: int = Field(4, ge=1, le=64, description="Attention heads of the attention reader; must divide attention_width.")
     attention_context: int = Field(0, ge=0, le=8, description="Residual 3x3 convolutions over the attention reader's token grid, dilated by 2 over the default stem (reader 'attention'): each lets a token see two tokens (12 m at the default cells) further each way, so that a car's footprints in frames a second apart, which lie in different tokens once it moves more than a token's 6 m relative to the observer, meet. 0, the default, is the reader without them.")
@@ -189,11 +191,19 @@ class QNetwork(nn.Module):
         else:
             body_input = observation_shape
         self.body: nn.Module
-        if cfg.reader == "attention":
+        if cfg.reader != "conv":
             if mode != "raw":
-                raise ValueError(f"the attention reader reads raw maps; mode {mode!r} feeds the body latents")
+                raise ValueError(f"the {cfg.reader} reader reads raw maps; mode {mode!r} feeds the body latents")
             if geometry is None:
-                raise ValueError("the attention reader needs the map's geometry (resolution, behind)")
+                raise ValueError(f"the {cfg.reader} reader needs the map's geometry (resolution, behind)")
+        if cfg.reader == "objects":
+            if dueling:
+                raise ValueError("the objects reader has no dueling head (dqn.dueling=false)")
+            assert geometry is not None
+            self.body = ObjectsBody(observation_shape, *geometry, k=cfg.objects_k, width=cfg.attention_width,
+                                    heads=cfg.attention_heads, hidden=cfg.hidden)
+        elif cfg.reader == "attention":
+            assert geometry is not None
             self.body = MapAttentionBody(observation_shape, *geometry, width=cfg.attention_width,
                                          heads=cfg.attention_heads, context=cfg.attention_context,
                                          hidden=cfg.hidden, dueling=dueling, stem=cfg.attention_stem)

@@ -84,12 +84,17 @@ class PolicyTrainConfig(Config):
         if self.learner == "dagger" and self.backend != "fast":
             raise ValueError("learner 'dagger' needs backend 'fast': its experts read the fast backend's simulator "
                              "(the lookahead planner branches its state; the rule driver reads its specs)")
-        if self.vfan.reader == "attention" and self.mode != "raw":
-            raise ValueError(f"vfan.reader 'attention' reads raw maps: mode {self.mode!r} feeds the body latents "
-                             "(use it with mode 'raw')")
+        if self.vfan.reader != "conv" and self.mode != "raw":
+            raise ValueError(f"vfan.reader {self.vfan.reader!r} reads raw maps: mode {self.mode!r} feeds the body "
+                             "latents (use it with mode 'raw')")
         if self.vfan.reader == "attention" and self.dqn.augment_shift > 0:
             raise ValueError("vfan.reader 'attention' queries the token that holds the observer: shifting the maps "
                              "(dqn.augment_shift) would move the observer off it")
+        if self.vfan.reader == "objects" and self.dqn.augment_shift > 0:
+            raise ValueError("vfan.reader 'objects' places each vehicle relative to the observer: shifting the maps "
+                             "(dqn.augment_shift) would move every vehicle by the shift")
+        if self.vfan.reader == "objects" and self.dqn.dueling:
+            raise ValueError("vfan.reader 'objects' has no dueling head: dqn.dueling must be false")
         if self.dqn.augment_shift > 0 and self.mode not in ("raw", "end-to-end"):
             raise ValueError(f"dqn.augment_shift shifts maps: mode {self.mode!r} learns from stored latents "
                              "(use it with mode 'raw' or 'end-to-end')")

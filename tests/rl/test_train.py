@@ -150,6 +150,7 @@ LEARNER_OPTIONS = {"n_step": 3, "prioritized": True, "dueling": True, "tau": 0.0
 
 
 @pytest.mark.parametrize(("options", "vfan"), [({}, {}), (LEARNER_OPTIONS, {}), ({**LEARNER_OPTIONS, "augment_shift": 0}, {"reader": "attention"}),
+                                               ({**LEARNER_OPTIONS, "augment_shift": 0, "dueling": False}, {"reader": "objects"}),
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0}, {"reader": "attention"}),
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0, "aux_joint": True},
                                                 {"reader": "attention"}),
@@ -158,7 +159,7 @@ LEARNER_OPTIONS = {"n_step": 3, "prioritized": True, "dueling": True, "tau": 0.0
                                                  "learning_starts": 120}, {"reader": "attention"}),
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0, "aux_pretrain": 5,
                                                  "learning_starts": 50}, {"reader": "attention"})],
-                         ids=["defaults", "options", "attention-reader", "auxiliary-loss", "joint-auxiliary-loss",
+                         ids=["defaults", "options", "attention-reader", "objects-reader", "auxiliary-loss", "joint-auxiliary-loss",
                               "resumed-before-pretraining", "resumed-after-pretraining"])
 def test_a_short_runs_replay_takes_the_room_of_its_transitions_and_resumes(tmp_path, tiny, monkeypatch, options, vfan):
     # The default buffer holds 100k transitions: saved whole, a raw replay takes 400 MB
