@@ -5,7 +5,7 @@ Scores the run's kept weights (``best.safetensors``) on the first ``--batches`` 
 batches (every scenario in each) of its held-out episodes (``split.json``), with the
 object-level rules of :func:`latentdrive.bnn.vehicles.vehicle_counts` applied one frame at
 a time to the HV and AV channels of the HV+AV pair. Each (sample, channel) is binned by its
-vehicles per frame (the blobs of its four frames, divided by four, rounded down, ``3``
+vehicles per frame (the blobs of its frames divided by the stack's frames, rounded down, ``3``
 meaning three or more). The noisy column scores the denoiser's own input the same way:
 what the sensor shows of those vehicles. A network whose misses gather in sparse scenes or
 one scenario draws the vehicles it has seen often, not the vehicles it is shown. Usage::
@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,7 @@ from latentdrive.bnn.train_config import BNNTrainConfig
 from latentdrive.bnn.vehicles import VehicleCounts, vehicle_counts
 from latentdrive.config import validate
 from latentdrive.data.dataset import ShardDataset
+from latentdrive.fileio import read_json
 from latentdrive.runtime import autocast, resolve_precision
 
 CHANNELS = ("HV", "AV")
@@ -52,7 +52,7 @@ def main() -> int:
     model = load_trained_bottleneck(args.run).eval()
     device = torch.device("cpu")
     dtype = resolve_precision(cfg.precision, device)
-    split = json.loads((args.run / "split.json").read_text())
+    split = read_json(args.run / "split.json")
     ds = ShardDataset(split["dataset"])
     names = ds.scenario_names
     ids = np.asarray(split["val_episodes"], dtype=np.int64)

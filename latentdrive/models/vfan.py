@@ -65,8 +65,8 @@ class VFANConfig(Config):
     hidden: int = Field(512, ge=8, le=4096, description="Width of the fully connected layer before the Q-values.")
     reader: Literal["conv", "attention", "objects"] = Field("conv", description="How the raw map is read: 'conv', the paper's 3D-convolutional body (the fields above); 'attention', a convolutional stem to a grid of 6 m tokens that the observer's own token queries by multi-head attention, the same weights for every cell (latentdrive.models.attention); 'objects', the vehicles of the newest frame found by a fixed rule (connected HV and AV cells), the objects_k nearest, which the observer's own embedding (its speed and the road around it) queries by multi-head attention (latentdrive.models.objects; no dueling head). Both others: raw mode only; channels, kernels, strides and temporal_kernel do not apply, attention_width and attention_heads do.")
     objects_k: int = Field(16, ge=1, le=256, description="Vehicles the objects reader reads, nearest first (reader 'objects').")
-    attention_width: int = Field(64, ge=8, le=1024, description="Token features of the attention reader (reader 'attention').")
-    attention_heads: int = Field(4, ge=1, le=64, description="Attention heads of the attention reader; must divide attention_width.")
+    attention_width: int = Field(64, ge=8, le=1024, description="Token features of the attention reader, or vehicle and observer embedding features of the objects reader (readers 'attention' and 'objects').")
+    attention_heads: int = Field(4, ge=1, le=64, description="Attention heads of the attention and objects readers; must divide attention_width.")
     attention_context: int = Field(0, ge=0, le=8, description="Residual 3x3 convolutions over the attention reader's token grid, dilated by 2 over the default stem (reader 'attention'): each lets a token see two tokens (12 m at the default cells) further each way, so that a car's footprints in frames a second apart, which lie in different tokens once it moves more than a token's 6 m relative to the observer, meet. 0, the default, is the reader without them.")
     attention_stem: Stem = Field("conv", description="The attention reader's stem: 'conv', two overlapping stride-2 convolutions (the default); 'patch', one convolution over non-overlapping 4 x 4 blocks of cells and a 1 x 1 convolution, about half the arithmetic per update (latentdrive bench --train prints GFLOP per update), each token seeing its own 6 m block only (attention_context's layers are then not dilated), and the last rows or columns of a map whose sides are not multiples of 4 left unread.")
 
@@ -160,7 +160,8 @@ class QNetwork(nn.Module):
         dueling: a dueling head (value and advantage streams) instead of one output layer.
         geometry: the map's cell size and the distance it sees behind the observer,
             metres (``ObservationConfig.resolution``, ``.behind``): where the attention
-            reader's tokens lie (``cfg.reader == "attention"``, which needs it).
+            reader's tokens and the objects reader's vehicles lie (readers ``"attention"``
+            and ``"objects"``, which need it).
     """
 
     def __init__(self, cfg: VFANConfig, mode: Mode, observation_shape: tuple[int, int, int, int],

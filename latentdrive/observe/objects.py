@@ -41,10 +41,10 @@ def label_blobs(mask: Tensor) -> Tensor:
     if mask.ndim != 3:
         raise ValueError(f"expected masks of shape (N, H, W), got {tuple(mask.shape)}")
     n, h, w = mask.shape
-    # Labels are carried as floats, which max-pooling takes: float32 holds integers exactly
-    # up to 2**24 (a batch of 8,192 maps of 32 × 64 cells) and pools several times faster
-    # on CPU; float64 (exact up to 2**53) beyond that.
-    dtype = torch.float32 if n * h * w < 2**24 else torch.float64
+    # Labels are carried as floats: float32 holds every integer up to 2**24 (the labels of
+    # 8,192 maps of 32 × 64 cells) exactly and is faster on CPU; float64 (exact up to 2**53)
+    # beyond that.
+    dtype = torch.float32 if n * h * w <= 2**24 else torch.float64
     ids = torch.arange(1, n * h * w + 1, device=mask.device, dtype=dtype).view(n, 1, h, w)
     m = mask.view(n, 1, h, w)
     labels = torch.where(m, ids, torch.zeros_like(ids))
@@ -89,8 +89,8 @@ def map_objects(maps: Tensor, resolution: float, behind: float, k: int) -> Tenso
     on = torch.nonzero(labels).squeeze(1)
     if on.numel() == 0:
         return out
-    _, blob = torch.unique(labels[on], return_inverse=True)
-    n = int(blob.max()) + 1
+    ids, blob = torch.unique(labels[on], return_inverse=True)
+    n = int(ids.numel())
 
     def total(values: Tensor) -> Tensor:
         return torch.zeros(n, dtype=torch.float64, device=maps.device).index_add_(0, blob, values.double())
@@ -103,10 +103,9 @@ def map_objects(maps: Tensor, resolution: float, behind: float, k: int) -> Tenso
     x = (total(col) / count + 0.5) * resolution - behind
     y = (total(row) / count + 0.5) * resolution - 0.5 * h * resolution
     value = total(newest.flatten()[on]) / count
-    # A blob lies in one (observation, channel) layer: its first cell's says which.
-    first = torch.full((n,), labels.numel(), dtype=torch.int64, device=maps.device).scatter_reduce_(
-        0, blob, on, "amin")
-    layer = first // (h * w)
+    # A blob's label is one of its cells' flat index + 1, so it names the (observation,
+    # channel) layer the blob lies in.
+    layer = (ids - 1) // (h * w)
     obs, is_av = layer // 2, layer % 2
     # Nearest first within each observation: sort by distance, then stably by observation.
     dist = torch.hypot(x, y)

@@ -7,6 +7,7 @@ from typing import Literal
 from pydantic import Field, ValidationInfo, field_validator, model_validator
 
 from latentdrive.config import Config, ConfigError, ObservationConfig
+from latentdrive.models.objects import ROAD_POOL
 from latentdrive.models.vfan import MODES, Mode, VFANConfig
 from latentdrive.rl.dqn import DQNConfig
 from latentdrive.rl.imitate import ImitationConfig
@@ -93,8 +94,8 @@ class PolicyTrainConfig(Config):
         if self.vfan.reader == "objects" and self.dqn.augment_shift > 0:
             raise ValueError("vfan.reader 'objects' places each vehicle relative to the observer: shifting the maps "
                              "(dqn.augment_shift) would move every vehicle by the shift")
-        if self.vfan.reader == "objects" and self.dqn.dueling:
-            raise ValueError("vfan.reader 'objects' has no dueling head: dqn.dueling must be false")
+        if self.vfan.reader == "objects":
+            self._check_objects_reader()
         if self.dqn.augment_shift > 0 and self.mode not in ("raw", "end-to-end"):
             raise ValueError(f"dqn.augment_shift shifts maps: mode {self.mode!r} learns from stored latents "
                              "(use it with mode 'raw' or 'end-to-end')")
@@ -108,6 +109,21 @@ class PolicyTrainConfig(Config):
             raise ValueError("learner 'dagger' neither explores nor augments: dqn.explore_rule and "
                              "dqn.augment_shift must be 0")
         return self
+
+    def _check_objects_reader(self) -> None:
+        obs = self.observation
+        if self.dqn.dueling:
+            raise ValueError("vfan.reader 'objects' has no dueling head: dqn.dueling must be false")
+        if obs.route > 0:
+            raise ValueError("vfan.reader 'objects' reads the AV's speed as the MV channel's peak: "
+                             f"observation.route={obs.route} draws the route there too (use route 0)")
+        if obs.frames < 2:
+            raise ValueError(f"vfan.reader 'objects' reads the AV's speed in two frames: observation.frames "
+                             f"must be at least 2, got {obs.frames}")
+        if obs.height % ROAD_POOL or obs.width % ROAD_POOL:
+            raise ValueError(f"vfan.reader 'objects' averages the road over {ROAD_POOL} x {ROAD_POOL} cells: "
+                             f"observation.height and width must be multiples of {ROAD_POOL}, got "
+                             f"{obs.height} x {obs.width}")
 
 
 def check_mission_pays(cfg: PolicyTrainConfig) -> None:

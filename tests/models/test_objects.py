@@ -6,7 +6,7 @@ import torch
 from latentdrive.config import ConfigError, validate
 from latentdrive.models.objects import ObjectsBody
 from latentdrive.models.vfan import QNetwork, VFANConfig
-from latentdrive.observe.velocitymap import HV, MV, RL
+from latentdrive.observe.velocitymap import AV, HV, MV, RL
 from latentdrive.rl.config import PolicyTrainConfig
 
 SHAPE = (4, 2, 16, 32)
@@ -31,20 +31,43 @@ def test_q_values_and_gradients_reach_every_layer() -> None:
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
 
 
-def test_it_reads_the_vehicles_speed_and_road_and_nothing_else() -> None:
-    net = _net().eval()
-    x = torch.zeros(1, *SHAPE)
-    x[0, RL, -1, 6:10] = 1.0
+def test_it_reads_the_newest_vehicles_the_two_newest_speeds_and_the_newest_road() -> None:
+    shape = (4, 3, 16, 32)
+    torch.manual_seed(0)
+    net = QNetwork(VFANConfig(reader="objects", hidden=32, attention_width=16, objects_k=4), "raw", shape,
+                   geometry=GEOMETRY).eval()
+    x = torch.zeros(1, *shape)
+    x[0, RL, :, 6:10] = 1.0
     base = net(x)
-    car = x.clone()
-    car[0, HV, -1, 7:9, 10:13] = 0.9
-    fast = x.clone()
-    fast[0, MV, -1, 7:9, 7:10] = 0.5
-    older = x.clone()
-    older[0, HV, 0, 7:9, 10:13] = 0.9  # an older frame's vehicle: not read
-    assert not torch.allclose(net(car), base)
-    assert not torch.allclose(net(fast), base)
-    assert torch.equal(net(older), base)
+
+    def changed(frame: int, channel: int, rows: slice, cols: slice, value: float) -> torch.Tensor:
+        y = x.clone()
+        y[0, channel, frame, rows, cols] = value
+        return net(y)
+
+    assert not torch.allclose(changed(-1, HV, slice(7, 9), slice(10, 13), 0.9), base)  # a vehicle
+    assert not torch.allclose(changed(-1, MV, slice(7, 9), slice(7, 10), 0.5), base)  # speed now
+    assert not torch.allclose(changed(-2, MV, slice(7, 9), slice(7, 10), 0.5), base)  # speed a step ago
+    assert not torch.allclose(changed(-1, RL, slice(0, 4), slice(0, 32), 1.0), base)  # more road
+    # Not read: an older frame's vehicle, the speed two steps ago, an older frame's road.
+    assert torch.equal(changed(0, HV, slice(7, 9), slice(10, 13), 0.9), base)
+    assert torch.equal(changed(0, MV, slice(7, 9), slice(7, 10), 0.5), base)
+    assert torch.equal(changed(0, RL, slice(0, 4), slice(0, 32), 1.0), base)
+
+
+def test_padding_rows_are_not_read() -> None:
+    # The weights do not depend on k: with at most four vehicles in view, reading four or
+    # nine rows must give the same Q-values (the five extra rows are padding).
+    torch.manual_seed(0)
+    four = ObjectsBody(SHAPE, *GEOMETRY, k=4, width=16, hidden=32).eval()
+    nine = ObjectsBody(SHAPE, *GEOMETRY, k=9, width=16, hidden=32).eval()
+    nine.load_state_dict(four.state_dict())
+    x = torch.zeros(3, *SHAPE)
+    x[:, RL, -1, 6:10] = 1.0
+    x[0, HV, -1, 2:4, 3:6] = 0.7
+    x[1, HV, -1, 2:4, 3:6] = 0.7
+    x[1, AV, -1, 12:14, 20:23] = 0.4
+    torch.testing.assert_close(four(x), nine(x))
 
 
 def test_the_reader_is_refused_where_it_cannot_read() -> None:
@@ -62,5 +85,11 @@ def test_the_reader_is_refused_where_it_cannot_read() -> None:
         validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "objects"}, "dqn": {"augment_shift": 2}})
     with pytest.raises(ConfigError, match="dueling"):
         validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "objects"}, "dqn": {"dueling": True}})
+    with pytest.raises(ConfigError, match="route"):
+        validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "objects"}, "observation": {"route": 0.8}})
+    with pytest.raises(ConfigError, match=r"observation\.frames"):
+        validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "objects"}, "observation": {"frames": 1}})
+    with pytest.raises(ConfigError, match="multiples of 4"):
+        validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "objects"}, "observation": {"height": 18}})
     with pytest.raises(ConfigError, match="objects_k"):
         validate(VFANConfig, {"reader": "objects", "objects_k": 0})
