@@ -1,4 +1,4 @@
-"""Observations: pure functions from a Scene to VelocityMap tensors (no simulator imports)."""
+"""Observations: pure functions from a Scene to VelocityMap tensors (no simulator imports), and of those tensors to the vehicles they show (:mod:`latentdrive.observe.objects`)."""
 
 from latentdrive.observe.velocitymap import (
     AV,
