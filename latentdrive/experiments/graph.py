@@ -56,6 +56,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("vfan", "attention_heads"): 4,
     ("vfan", "attention_context"): 0,
     ("vfan", "attention_stem"): "conv",
+    ("vfan", "objects_k"): 16,
 }
 
 
