@@ -15,8 +15,8 @@ from __future__ import annotations
 
 import argparse
 import itertools
-import json
 from pathlib import Path
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
@@ -27,7 +27,30 @@ from latentdrive.bnn.train import load_trained_bottleneck
 from latentdrive.bnn.train_config import BNNTrainConfig
 from latentdrive.config import validate
 from latentdrive.data.dataset import ShardDataset
+from latentdrive.fileio import read_json
+from latentdrive.models.bottleneck import BottleneckNetwork
 from latentdrive.runtime import resolve_precision
+
+
+class BNNRun(NamedTuple):
+    """A finished BNN run: its training config, kept weights, episode split and dataset."""
+
+    cfg: BNNTrainConfig
+    model: BottleneckNetwork
+    split: dict[str, Any]
+    dataset: ShardDataset
+
+
+def open_run(run: Path) -> BNNRun:
+    """The run in folder ``run``, or ``SystemExit`` with a one-line reason if it is not one."""
+    if not (run / "split.json").exists():
+        raise SystemExit(f"{run}: not a BNN run folder (no split.json)")
+    saved = saved_configs(run)
+    if not isinstance(saved, dict) or "train" not in saved:
+        raise SystemExit(f"{run}: no training config (not a BNN run folder)")
+    split = read_json(run / "split.json")
+    return BNNRun(validate(BNNTrainConfig, saved["train"]), load_trained_bottleneck(run), split,
+                  ShardDataset(split["dataset"]))
 
 
 def main() -> int:
@@ -35,18 +58,10 @@ def main() -> int:
     ap.add_argument("run", type=Path)
     ap.add_argument("--batches", type=int, default=30, help="batches scored per side (default 30)")
     args = ap.parse_args()
-    if not (args.run / "split.json").exists():
-        raise SystemExit(f"{args.run}: not a BNN run folder (no split.json)")
     if args.batches < 1:
         raise SystemExit(f"--batches must be at least 1, got {args.batches}")
-    saved = saved_configs(args.run)
-    if not isinstance(saved, dict) or "train" not in saved:
-        raise SystemExit(f"{args.run}: no training config (not a BNN run folder)")
-    cfg = validate(BNNTrainConfig, saved["train"])
-    model = load_trained_bottleneck(args.run)
+    cfg, model, split, ds = open_run(args.run)
     device = torch.device("cpu")
-    split = json.loads((args.run / "split.json").read_text())
-    ds = ShardDataset(split["dataset"])
     torch.use_deterministic_algorithms(cfg.deterministic)
     print(f"{args.run}: up to {args.batches} batches of {cfg.batch_size} samples per side")
     print(f"{'episodes':<10}{'samples':>9}{'recall':>9}{'precision':>11}")

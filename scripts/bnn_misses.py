@@ -17,19 +17,17 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import runpy
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from latentdrive.bnn.resume import saved_configs
-from latentdrive.bnn.train import load_trained_bottleneck
-from latentdrive.bnn.train_config import BNNTrainConfig
 from latentdrive.bnn.vehicles import VehicleCounts, vehicle_counts
-from latentdrive.config import validate
-from latentdrive.data.dataset import ShardDataset
-from latentdrive.fileio import read_json
 from latentdrive.runtime import autocast, resolve_precision
+
+# The run-folder checks and loading shared with scripts/bnn_gap.py.
+_open_run = runpy.run_path(str(Path(__file__).resolve().parent / "bnn_gap.py"), run_name="bnn_gap")["open_run"]
 
 CHANNELS = ("HV", "AV")
 #: Vehicles per frame, the last bin open-ended.
@@ -41,19 +39,12 @@ def main() -> int:
     ap.add_argument("run", type=Path)
     ap.add_argument("--batches", type=int, default=24, help="held-out batches of 64 scored (default 24)")
     args = ap.parse_args()
-    if not (args.run / "split.json").exists():
-        raise SystemExit(f"{args.run}: not a BNN run folder (no split.json)")
     if args.batches < 1:
         raise SystemExit(f"--batches must be at least 1, got {args.batches}")
-    saved = saved_configs(args.run)
-    if not isinstance(saved, dict) or "train" not in saved:
-        raise SystemExit(f"{args.run}: no training config (not a BNN run folder)")
-    cfg = validate(BNNTrainConfig, saved["train"])
-    model = load_trained_bottleneck(args.run).eval()
+    cfg, model, split, ds = _open_run(args.run)
+    model.eval()
     device = torch.device("cpu")
     dtype = resolve_precision(cfg.precision, device)
-    split = read_json(args.run / "split.json")
-    ds = ShardDataset(split["dataset"])
     names = ds.scenario_names
     ids = np.asarray(split["val_episodes"], dtype=np.int64)
     # (scenario, channel, bin) -> (model's counts, noisy input's counts, samples)
