@@ -36,7 +36,8 @@ ROAD_POOL = 4
 
 
 class ObjectsBody(nn.Module):
-    """Input ``(B, C, T, H, W)`` maps → Q-values ``(B, n_actions)`` (module docstring).
+    """What it reads of the maps, :meth:`features` ``(B, feature_size)`` → Q-values
+    ``(B, n_actions)`` (module docstring).
 
     Args:
         input_shape: ``(4, T, H, W)``; T at least 2, H and W multiples of :data:`ROAD_POOL`.
@@ -55,20 +56,40 @@ class ObjectsBody(nn.Module):
         if h % ROAD_POOL or w % ROAD_POOL:
             raise ValueError(f"the objects reader needs maps whose sides are multiples of {ROAD_POOL}, got {h} × {w}")
         self.resolution, self.behind, self.k = resolution, behind, k
-        ego = 2 + (h // ROAD_POOL) * (w // ROAD_POOL)
-        self.embed_ego = nn.Sequential(nn.Linear(ego, width), nn.ReLU(), nn.Linear(width, width))
+        self._ego = 2 + (h // ROAD_POOL) * (w // ROAD_POOL)
+        self.embed_ego = nn.Sequential(nn.Linear(self._ego, width), nn.ReLU(), nn.Linear(width, width))
         self.embed_vehicle = nn.Sequential(nn.Linear(PER_OBJECT, width), nn.ReLU(), nn.Linear(width, width))
         self.attend = nn.MultiheadAttention(width, heads, batch_first=True)
         self.head = nn.Sequential(nn.Linear(2 * width, hidden), nn.ReLU(), nn.Linear(hidden, n_actions))
 
-    def forward(self, x: Tensor) -> Tensor:
-        b = x.shape[0]
-        vehicles = map_objects(x.detach(), self.resolution, self.behind, self.k).to(x.dtype)
-        speed = x[:, MV, -2:].amax(dim=(-2, -1))  # (B, 2)
-        road = F.avg_pool2d(x[:, RL, -1:], ROAD_POOL).flatten(1)
-        me = self.embed_ego(torch.cat([speed, road], dim=1))
+    @property
+    def feature_size(self) -> int:
+        """Length of :meth:`features`' rows: 2 speeds, the pooled road, ``k`` vehicle rows."""
+        return self._ego + self.k * PER_OBJECT
+
+    @torch.no_grad()
+    def features(self, x: Tensor) -> Tensor:
+        """Maps ``(B, 4, T, H, W)`` → what the reader reads of them, ``(B, feature_size)`` float32:
+        the two newest speeds, the newest road pooled, then the ``k`` vehicle rows.
+
+        A fixed function of the map, so replay stores it once per observation (as latent
+        modes store the frozen encoder's code) instead of finding the vehicles again at
+        every update. Computed in fp32 whatever the autocast around it: the places and
+        values are inputs, not activations."""
+        with torch.autocast(x.device.type, enabled=False):
+            x = x.float()
+            vehicles = map_objects(x, self.resolution, self.behind, self.k)
+            speed = x[:, MV, -2:].amax(dim=(-2, -1))  # (B, 2)
+            road = F.avg_pool2d(x[:, RL, -1:], ROAD_POOL).flatten(1)
+            return torch.cat([speed, road, vehicles.flatten(1)], dim=1)
+
+    def forward(self, f: Tensor) -> Tensor:
+        """:meth:`features`' rows ``(B, feature_size)`` → Q-values ``(B, n_actions)``."""
+        b = f.shape[0]
+        vehicles = f[:, self._ego:].reshape(b, self.k, PER_OBJECT)
+        me = self.embed_ego(f[:, :self._ego])
         tokens = torch.cat([me[:, None], self.embed_vehicle(vehicles)], dim=1)
         # A vehicle row's last value is 1, a padding row's 0; the observer's token is always read.
-        absent = torch.cat([torch.zeros(b, 1, dtype=torch.bool, device=x.device), vehicles[:, :, -1] < 0.5], dim=1)
+        absent = torch.cat([torch.zeros(b, 1, dtype=torch.bool, device=f.device), vehicles[:, :, -1] < 0.5], dim=1)
         mixed, _ = self.attend(me[:, None], tokens, tokens, key_padding_mask=absent, need_weights=False)
         return self.head(torch.cat([me, mixed[:, 0]], dim=1))

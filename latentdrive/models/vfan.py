@@ -149,7 +149,9 @@ class QNetwork(nn.Module):
 
     - ``raw`` and ``end-to-end``: the observation ``(4, T, H, W)`` (kept as uint8 frames
       by the replay buffer);
-    - ``latent`` and ``latent-random``: its latents ``(3, d)``, from :meth:`features`.
+    - ``latent`` and ``latent-random``: its latents ``(3, d)``, from :meth:`features`;
+    - ``raw`` with the objects reader: the vehicles and road it reads of the map
+      ``(F,)``, from :meth:`features`.
 
     Args:
         cfg: the body's architecture.
@@ -212,11 +214,20 @@ class QNetwork(nn.Module):
             self.body = VFANBody(cfg, body_input, dueling=dueling)
 
     @property
+    def stores_features(self) -> bool:
+        """Whether replay stores a fixed function of each observation (:meth:`features`,
+        computed once when it is collected) rather than its map frames: the frozen
+        encoder's code in the latent modes, the vehicles found in the map by the objects reader."""
+        return self.mode in LATENT_MODES or isinstance(self.body, ObjectsBody)
+
+    @property
     def stored_shape(self) -> tuple[int, ...]:
         """Per-observation shape of what replay stores."""
         if self.mode in LATENT_MODES:
             assert self.encoder is not None
             return self.encoder.latent_shape
+        if isinstance(self.body, ObjectsBody):
+            return (self.body.feature_size,)
         return self.observation_shape
 
     def trainable_parameters(self) -> list[nn.Parameter]:
@@ -238,6 +249,8 @@ class QNetwork(nn.Module):
         if self.mode in LATENT_MODES:
             assert self.encoder is not None
             return self.encoder.encode(obs)
+        if isinstance(self.body, ObjectsBody):
+            return self.body.features(obs)
         return obs
 
     def forward(self, stored: Tensor) -> Tensor:

@@ -41,7 +41,6 @@ import torch
 from torch.utils.flop_counter import FlopCounterMode
 
 from latentdrive.config import merge_overrides, validate
-from latentdrive.models.vfan import LATENT_MODES
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.learner import Learner
 from latentdrive.rl.policy import build_network, encoder_config
@@ -159,7 +158,7 @@ def _bench_mode(cfg: PolicyTrainConfig, transitions: int, updates: int,
         with FlopCounterMode(display=False) as counter:
             learner.update_step()
         encode = 0.0
-        if cfg.mode in LATENT_MODES:
+        if net.stores_features:
             one = torch.zeros(8, *cfg.observation.shape, device=device)
             with FlopCounterMode(display=False) as enc_counter:
                 net.features(one)

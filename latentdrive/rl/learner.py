@@ -30,7 +30,7 @@ from latentdrive.bnn.checkpoint import (
 from latentdrive.config import ConfigError, validate
 from latentdrive.errors import first_line
 from latentdrive.fileio import atomic_write_bytes, confined
-from latentdrive.models.vfan import LATENT_MODES, QNetwork
+from latentdrive.models.vfan import QNetwork
 from latentdrive.rl.augment import random_shift
 from latentdrive.rl.auxiliary import AuxLearning
 from latentdrive.rl.config import PolicyTrainConfig
@@ -54,7 +54,7 @@ def make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> Observati
     # n-step entries reach the replay up to n-1 steps after their first observation was
     # stored: the store keeps 2·(n-1) more steps' worth of observations per agent slot.
     late = 2 * (cfg.dqn.n_step - 1) * n_slots
-    if net.mode in LATENT_MODES:
+    if net.stores_features:
         # Per step: one next observation per transition and n_av first observations per
         # ended environment; over the replay's span that is at most 2·cap + 3·n_slots.
         return LatentStore(2 * cap + 4 * n_slots + late, net.stored_shape)

@@ -24,7 +24,7 @@ from latentdrive.bnn.train import load_trained_bottleneck
 from latentdrive.config import ConfigError, config_hash, validate
 from latentdrive.fileio import read_json
 from latentdrive.models.bottleneck import BottleneckConfig, BottleneckNetwork
-from latentdrive.models.vfan import LATENT_MODES, QNetwork
+from latentdrive.models.vfan import QNetwork
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rollout import Policy, PolicyInput
 from latentdrive.runtime import autocast
@@ -108,8 +108,9 @@ def build_network(cfg: PolicyTrainConfig, encoder_cfg: BottleneckConfig | None,
 class FeatureCache:
     """What replay stores for the latest observations, computed once.
 
-    Latent modes encode each observation with the frozen encoder once; the learner and
-    the acting policy both read the cached result for the same array. Callers say which
+    Latent modes encode each observation with the frozen encoder once, and the objects
+    reader finds its vehicles once (``QNetwork.stores_features``); the learner and the
+    acting policy both read the cached result for the same array. Callers say which
     agents they need: an AV that has finished its mission or crashed stays in the arrays
     until its episode ends, and its observations need no encoding (its rows hold zeros
     until some caller needs them).
@@ -125,7 +126,7 @@ class FeatureCache:
     def __call__(self, obs: NDArray[np.float32], need: NDArray[np.bool_] | None = None) -> torch.Tensor:
         """Features ``(num_envs, n_av, *stored_shape)`` of ``obs`` ``(num_envs, n_av, 4, T, H, W)``,
         exact wherever ``need`` ``(num_envs, n_av)`` is True (everywhere when None)."""
-        if self.net.mode not in LATENT_MODES:
+        if not self.net.stores_features:
             # Raw observations are their own features: no copy on the acting path.
             return torch.from_numpy(obs).to(self.device)
         lead = obs.shape[:2]

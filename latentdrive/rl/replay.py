@@ -2,9 +2,11 @@
 
 Transitions refer to observations by id. An observation store keeps them in a ring:
 
-- :class:`LatentStore` (latent modes): the frozen encoder's latents ``(3, d)`` float32,
-  encoded once when the observation is collected. The encoder never changes, so this is
-  exactly what encoding at sampling time would give, at a fraction of the cost.
+- :class:`LatentStore` (latent modes, and the objects reader of raw maps): the frozen
+  encoder's latents ``(3, d)`` float32, or the vehicles and road the objects reader finds
+  in the map ``(F,)``, computed once when the observation is collected. Both are fixed
+  functions of the observation, so this is exactly what computing them at sampling time
+  would give, at a fraction of the cost.
 - :class:`FrameStore` (raw and end-to-end modes): only the newest VelocityMap frame
   ``(4, H, W)`` of each observation, as uint8 (``round(255·x)``), with the id of the same
   agent's previous frame. Sampling rebuilds the stack ``(4, T, H, W)`` by following those
@@ -66,7 +68,7 @@ class ObservationStore(Protocol):
 
 
 class LatentStore:
-    """Latents ``(k, *shape)`` float32 by id; ``prev`` is ignored (latents are whole)."""
+    """Fixed features (latents) ``(*shape)`` float32 by id; ``prev`` is ignored (they are whole)."""
 
     def __init__(self, capacity: int, shape: tuple[int, ...]) -> None:
         self.capacity = int(capacity)

@@ -25,7 +25,7 @@ def test_q_values_and_gradients_reach_every_layer() -> None:
     x[:, HV, -1, 3:5, 20:23] = 0.7
     x[:, RL, -1] = 1.0
     x[:, MV, :, 7:9, 7:10] = 0.3
-    q = net(x)
+    q = net(net.features(x))
     assert q.shape == (5, 5)
     q.sum().backward()
     assert all(p.grad is not None and p.grad.abs().sum() > 0 for p in net.parameters())
@@ -38,12 +38,12 @@ def test_it_reads_the_newest_vehicles_the_two_newest_speeds_and_the_newest_road(
                    geometry=GEOMETRY).eval()
     x = torch.zeros(1, *shape)
     x[0, RL, :, 6:10] = 1.0
-    base = net(x)
+    base = net(net.features(x))
 
     def changed(frame: int, channel: int, rows: slice, cols: slice, value: float) -> torch.Tensor:
         y = x.clone()
         y[0, channel, frame, rows, cols] = value
-        return net(y)
+        return net(net.features(y))
 
     assert not torch.allclose(changed(-1, HV, slice(7, 9), slice(10, 13), 0.9), base)  # a vehicle
     assert not torch.allclose(changed(-1, MV, slice(7, 9), slice(7, 10), 0.5), base)  # speed now
@@ -53,6 +53,26 @@ def test_it_reads_the_newest_vehicles_the_two_newest_speeds_and_the_newest_road(
     assert torch.equal(changed(0, HV, slice(7, 9), slice(10, 13), 0.9), base)
     assert torch.equal(changed(0, MV, slice(7, 9), slice(7, 10), 0.5), base)
     assert torch.equal(changed(0, RL, slice(0, 4), slice(0, 32), 1.0), base)
+
+
+def test_features_are_the_speeds_the_pooled_road_and_the_vehicle_rows_in_fp32_under_any_autocast() -> None:
+    net = _net()
+    x = torch.zeros(2, *SHAPE)
+    x[:, RL, -1, 4:8] = 1.0
+    x[0, MV, -1, 7:9, 7:10] = 0.3
+    x[0, MV, -2, 7:9, 7:10] = 0.25
+    x[1, AV, -1, 3:5, 20:23] = 0.7
+    f = net.features(x)
+    assert f.dtype == torch.float32 and f.shape == (2, net.stored_shape[0]) == (2, 2 + 4 * 8 + 4 * 6)
+    torch.testing.assert_close(f[0, :2], torch.tensor([0.25, 0.3]))
+    # 4 × 4 blocks: rows 4-7 of the road are the second row of blocks, all road.
+    torch.testing.assert_close(f[:, 2:34].reshape(2, 4, 8)[:, 1], torch.ones(2, 8))
+    assert f[:, 2:34].reshape(2, 4, 8)[:, [0, 2, 3]].sum() == 0
+    rows = f[:, 34:].reshape(2, 4, 6)
+    assert rows[0, :, -1].sum() == 0 and rows[1, :, -1].tolist() == [1.0, 0.0, 0.0, 0.0]
+    torch.testing.assert_close(rows[1, 0, 2:5], torch.tensor([0.7, 1.0, 0.6]))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert torch.equal(net.features(x), f)
 
 
 def test_padding_rows_are_not_read() -> None:
@@ -67,7 +87,7 @@ def test_padding_rows_are_not_read() -> None:
     x[0, HV, -1, 2:4, 3:6] = 0.7
     x[1, HV, -1, 2:4, 3:6] = 0.7
     x[1, AV, -1, 12:14, 20:23] = 0.4
-    torch.testing.assert_close(four(x), nine(x))
+    torch.testing.assert_close(four(four.features(x)), nine(nine.features(x)))
 
 
 def test_the_reader_is_refused_where_it_cannot_read() -> None:

@@ -20,10 +20,10 @@ def _random_policy(rng):
     return lambda inp: rng.integers(0, 5, size=inp.active.shape)
 
 
-def _record(mode: str, steps: int = 30):
+def _record(mode: str, steps: int = 30, vfan: dict | None = None):
     """Drive a learner's replay writing through real rollouts; keep every stored observation."""
     cfg = PolicyTrainConfig(mode=mode, scenarios=("intersection", "merge"), envs=4, observation=OBS,
-                            dqn={"buffer_size": 1000})
+                            dqn={"buffer_size": 1000}, vfan=vfan or {})
     net = build_network(cfg, None if mode == "raw" else BottleneckConfig.for_observation(cfg.observation))
     vec = latentdrive.make_vec(list(cfg.scenarios), cfg.envs, observation=OBS)
     learner = Learner(cfg, net, torch.device("cpu"), cfg.envs * vec.n_av)
@@ -92,6 +92,19 @@ def test_latent_replay_is_exactly_encoding_at_sampling_time():
         fresh = net.encoder.encode(torch.from_numpy(np.stack([seen[int(i)] for i in ids])))
     # Frozen encoder: the stored latents are what sampling-time encoding would give.
     torch.testing.assert_close(stored, fresh, atol=1e-6, rtol=1e-5)
+
+
+def test_the_objects_reader_stores_the_vehicles_it_finds_once_and_reads_them_back():
+    learner, net, seen = _record("raw", vfan={"reader": "objects", "objects_k": 6})
+    ids = np.array(sorted(seen))
+    store = learner.replay.store
+    assert isinstance(store, LatentStore) and net.stored_shape == (2 + 4 * 8 + 6 * 6,)
+    maps = torch.from_numpy(np.stack([seen[int(i)] for i in ids]))
+    stored = torch.from_numpy(store.get(ids))
+    torch.testing.assert_close(stored, net.features(maps), atol=0, rtol=0)
+    assert stored[:, -6 * 6:].reshape(len(ids), 6, 6)[:, 0, -1].sum() > 0  # vehicles were found
+    with torch.no_grad():
+        torch.testing.assert_close(net(stored), net(net.features(maps)))
 
 
 def test_transitions_of_an_ended_episode_lead_to_its_final_observation():
@@ -231,12 +244,12 @@ def test_the_feature_cache_encodes_each_needed_observation_once_and_no_other(mon
     torch.testing.assert_close(cache(obs), want, atol=1e-6, rtol=1e-5)
 
 
-@pytest.mark.parametrize("mode", ["raw", "latent-random"])
-def test_n_step_entries_never_refer_to_evicted_observations(mode):
+@pytest.mark.parametrize(("mode", "reader"), [("raw", "conv"), ("latent-random", "conv"), ("raw", "objects")])
+def test_n_step_entries_never_refer_to_evicted_observations(mode, reader):
     # A small ring that wraps many times: every stored entry's observations must still be
     # in the store while the entry is in the replay, although n-step entries arrive late.
     cfg = PolicyTrainConfig(mode=mode, scenarios=("intersection", "merge"), envs=4, observation=OBS,
-                            dqn={"buffer_size": 100, "n_step": 6})
+                            dqn={"buffer_size": 100, "n_step": 6}, vfan={"reader": reader})
     net = build_network(cfg, None if mode == "raw" else BottleneckConfig.for_observation(cfg.observation))
     vec = latentdrive.make_vec(list(cfg.scenarios), cfg.envs, observation=OBS)
     learner = Learner(cfg, net, torch.device("cpu"), cfg.envs * vec.n_av)
