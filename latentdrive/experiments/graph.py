@@ -57,6 +57,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("vfan", "attention_context"): 0,
     ("vfan", "attention_stem"): "conv",
     ("vfan", "objects_k"): 16,
+    ("vfan", "objects_frames"): 1,
 }
 
 

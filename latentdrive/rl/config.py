@@ -120,6 +120,9 @@ class PolicyTrainConfig(Config):
         if obs.frames < 2:
             raise ValueError(f"vfan.reader 'objects' reads the AV's speed in two frames: observation.frames "
                              f"must be at least 2, got {obs.frames}")
+        if self.vfan.objects_frames > obs.frames:
+            raise ValueError(f"vfan.objects_frames={self.vfan.objects_frames} reads more frames than the "
+                             f"observation stacks (observation.frames={obs.frames})")
         if obs.height % ROAD_POOL or obs.width % ROAD_POOL:
             raise ValueError(f"vfan.reader 'objects' averages the road over {ROAD_POOL} x {ROAD_POOL} cells: "
                              f"observation.height and width must be multiples of {ROAD_POOL}, got "

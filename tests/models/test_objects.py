@@ -75,6 +75,35 @@ def test_features_are_the_speeds_the_pooled_road_and_the_vehicle_rows_in_fp32_un
         assert torch.equal(net.features(x), f)
 
 
+def test_with_objects_frames_it_reads_each_newer_frames_vehicles_marked_by_age() -> None:
+    shape = (4, 3, 16, 32)
+    torch.manual_seed(0)
+    net = QNetwork(VFANConfig(reader="objects", hidden=32, attention_width=16, objects_k=4, objects_frames=2), "raw",
+                   shape, geometry=GEOMETRY).eval()
+    torch.nn.init.normal_(net.body.age)  # trained ages differ; zeros would hide the frame
+    x = torch.zeros(1, *shape)
+    x[0, RL, :, 6:10] = 1.0
+    x[0, HV, -1, 2:4, 3:6] = 0.7  # in the newest frame
+    x[0, AV, -2, 12:14, 20:23] = 0.4  # a frame older
+    f = net.features(x)
+    assert f.shape == (1, 2 + 4 * 8 + 2 * 4 * 6)
+    rows = f[0, 34:].reshape(2, 4, 6)  # newest frame's rows first
+    assert rows[:, :, -1].tolist() == [[1, 0, 0, 0], [1, 0, 0, 0]]
+    assert rows[0, 0, 3] == 0 and rows[1, 0, 3] == 1  # the HV now, the AV a frame ago
+    base = net(f)
+
+    def changed(frame: int) -> torch.Tensor:
+        y = x.clone()
+        y[0, HV, frame, 9:11, 25:28] = 0.9
+        return net(net.features(y))
+
+    assert not torch.allclose(changed(-1), base) and not torch.allclose(changed(-2), base)
+    assert torch.equal(changed(0), base)  # the oldest frame is not read
+    # The same vehicle read as one frame old rather than new: its age changes the Q-values.
+    older = torch.cat([f[:, :34], rows.flip(0).reshape(1, -1)], dim=1)
+    assert not torch.allclose(net(older), base)
+
+
 def test_padding_rows_are_not_read() -> None:
     # The weights do not depend on k: with at most four vehicles in view, reading four or
     # nine rows must give the same Q-values (the five extra rows are padding).
@@ -99,6 +128,10 @@ def test_the_reader_is_refused_where_it_cannot_read() -> None:
         ObjectsBody((4, 1, 16, 32), *GEOMETRY)
     with pytest.raises(ValueError, match="multiples of 4"):
         ObjectsBody((4, 2, 18, 32), *GEOMETRY)
+    with pytest.raises(ValueError, match="1 to 2 frames"):
+        ObjectsBody((4, 2, 16, 32), *GEOMETRY, frames=3)
+    with pytest.raises(ConfigError, match="objects_frames=5 reads more frames"):
+        validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "objects", "objects_frames": 5}})
     with pytest.raises(ConfigError, match="reads raw maps"):
         validate(PolicyTrainConfig, {"mode": "end-to-end", "vfan": {"reader": "objects"}})
     with pytest.raises(ConfigError, match="augment_shift"):
