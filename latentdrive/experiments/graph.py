@@ -58,6 +58,7 @@ LATER_SETTINGS: Mapping[tuple[str, ...], Any] = {
     ("vfan", "attention_stem"): "conv",
     ("vfan", "objects_k"): 16,
     ("vfan", "objects_frames"): 1,
+    ("vfan", "objects_layers"): 0,
 }
 
 

@@ -15,6 +15,10 @@ vehicles by a fixed rule instead of learning to and reads them so:
   several frames can average the one and bridge the other;
 - the observer's own part: its speed in the two newest frames (the MV channel's peak,
   ``|v| / max_speed``) and the newest road channel averaged over ``pool`` × ``pool`` cells;
+- with ``layers`` > 0, that many self-attention layers over the observer's and every
+  vehicle's embedding first (pre-norm transformer encoder layers), so that a vehicle's
+  rows can meet its rows in other frames and its neighbours before the observer reads
+  them: the query alone can only weigh rows, not relate them;
 - the observer's embedding queries every vehicle's, its own included, with ``heads``
   heads (layers shared by all vehicles, so a car contributes the same way wherever it is
   and whatever its rank); Q-values from the observer's embedding and what it attended to.
@@ -49,12 +53,13 @@ class ObjectsBody(nn.Module):
             observer, metres (``ObservationConfig``): where the vehicles lie.
         k: vehicles read per frame; frames: the newest frames whose vehicles are read (1 to
             T); width: embedding features; heads: attention heads (must divide width);
-            hidden: the head's hidden layer.
+            hidden: the head's hidden layer; layers: self-attention layers over the
+            embeddings before the observer's query (0: none).
     """
 
     def __init__(self, input_shape: tuple[int, int, int, int], resolution: float, behind: float, k: int = 16,
                  width: int = 64, heads: int = 4, hidden: int = 256, n_actions: int = N_ACTIONS,
-                 frames: int = 1) -> None:
+                 frames: int = 1, layers: int = 0) -> None:
         super().__init__()
         c, t, h, w = input_shape
         if c != 4 or t < 2:
@@ -70,6 +75,9 @@ class ObjectsBody(nn.Module):
         # Only where there are several frames to tell apart: a one-frame reader's weights
         # stay those it always had.
         self.age = nn.Parameter(torch.zeros(frames, width)) if frames > 1 else None
+        self.mix = nn.ModuleList(
+            nn.TransformerEncoderLayer(width, heads, dim_feedforward=2 * width, dropout=0.0, batch_first=True,
+                                       norm_first=True) for _ in range(layers))
         self.attend = nn.MultiheadAttention(width, heads, batch_first=True)
         self.head = nn.Sequential(nn.Linear(2 * width, hidden), nn.ReLU(), nn.Linear(hidden, n_actions))
 
@@ -111,5 +119,8 @@ class ObjectsBody(nn.Module):
         tokens = torch.cat([me[:, None], seen], dim=1)
         # A vehicle row's last value is 1, a padding row's 0; the observer's token is always read.
         absent = torch.cat([torch.zeros(b, 1, dtype=torch.bool, device=f.device), vehicles[:, :, -1] < 0.5], dim=1)
+        for layer in self.mix:
+            tokens = layer(tokens, src_key_padding_mask=absent)
+            me = tokens[:, 0]
         mixed, _ = self.attend(me[:, None], tokens, tokens, key_padding_mask=absent, need_weights=False)
         return self.head(torch.cat([me, mixed[:, 0]], dim=1))

@@ -66,6 +66,7 @@ class VFANConfig(Config):
     reader: Literal["conv", "attention", "objects"] = Field("conv", description="How the raw map is read: 'conv', the paper's 3D-convolutional body (the fields above); 'attention', a convolutional stem to a grid of 6 m tokens that the observer's own token queries by multi-head attention, the same weights for every cell (latentdrive.models.attention); 'objects', the vehicles of the newest frame found by a fixed rule (connected HV and AV cells), the objects_k nearest, which the observer's own embedding (its speed and the road around it) queries by multi-head attention (latentdrive.models.objects; no dueling head). Both others: raw mode only; channels, kernels, strides and temporal_kernel do not apply, attention_width and attention_heads do.")
     objects_k: int = Field(16, ge=1, le=256, description="Vehicles the objects reader reads per frame, nearest first (reader 'objects').")
     objects_frames: int = Field(1, ge=1, le=16, description="The newest frames whose vehicles the objects reader reads, each frame's objects_k nearest, marked by a learned embedding of the frame's age (reader 'objects'; at most observation.frames). 1, the default, reads the newest frame only.")
+    objects_layers: int = Field(0, ge=0, le=8, description="Self-attention layers (pre-norm transformer encoder layers, feed-forward 2 x attention_width) over the observer's and the vehicles' embeddings before the observer's query (reader 'objects'): they let a vehicle's rows meet its rows in other frames (objects_frames) and its neighbours. 0, the default, is the reader without them.")
     attention_width: int = Field(64, ge=8, le=1024, description="Token features of the attention reader, or vehicle and observer embedding features of the objects reader (readers 'attention' and 'objects').")
     attention_heads: int = Field(4, ge=1, le=64, description="Attention heads of the attention and objects readers; must divide attention_width.")
     attention_context: int = Field(0, ge=0, le=8, description="Residual 3x3 convolutions over the attention reader's token grid, dilated by 2 over the default stem (reader 'attention'): each lets a token see two tokens (12 m at the default cells) further each way, so that a car's footprints in frames a second apart, which lie in different tokens once it moves more than a token's 6 m relative to the observer, meet. 0, the default, is the reader without them.")
@@ -205,7 +206,8 @@ class QNetwork(nn.Module):
                 raise ValueError("the objects reader has no dueling head (dqn.dueling=false)")
             assert geometry is not None
             self.body = ObjectsBody(observation_shape, *geometry, k=cfg.objects_k, width=cfg.attention_width,
-                                    heads=cfg.attention_heads, hidden=cfg.hidden, frames=cfg.objects_frames)
+                                    heads=cfg.attention_heads, hidden=cfg.hidden, frames=cfg.objects_frames,
+                                    layers=cfg.objects_layers)
         elif cfg.reader == "attention":
             assert geometry is not None
             self.body = MapAttentionBody(observation_shape, *geometry, width=cfg.attention_width,

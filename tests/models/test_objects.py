@@ -19,8 +19,11 @@ def _net() -> QNetwork:
                     geometry=GEOMETRY)
 
 
-def test_q_values_and_gradients_reach_every_layer() -> None:
-    net = _net()
+@pytest.mark.parametrize("vfan", [{}, {"objects_frames": 2, "objects_layers": 2}])
+def test_q_values_and_gradients_reach_every_layer(vfan: dict) -> None:
+    torch.manual_seed(0)
+    net = QNetwork(VFANConfig(reader="objects", hidden=32, attention_width=16, objects_k=4, **vfan), "raw", SHAPE,
+                   geometry=GEOMETRY)
     x = torch.zeros(5, *SHAPE)
     x[:, HV, -1, 3:5, 20:23] = 0.7
     x[:, RL, -1] = 1.0
@@ -104,12 +107,14 @@ def test_with_objects_frames_it_reads_each_newer_frames_vehicles_marked_by_age()
     assert not torch.allclose(net(older), base)
 
 
-def test_padding_rows_are_not_read() -> None:
+@pytest.mark.parametrize("layers", [0, 1])
+def test_padding_rows_are_not_read(layers: int) -> None:
     # The weights do not depend on k: with at most four vehicles in view, reading four or
-    # nine rows must give the same Q-values (the five extra rows are padding).
+    # nine rows must give the same Q-values (the five extra rows are padding), with or
+    # without self-attention among the rows.
     torch.manual_seed(0)
-    four = ObjectsBody(SHAPE, *GEOMETRY, k=4, width=16, hidden=32).eval()
-    nine = ObjectsBody(SHAPE, *GEOMETRY, k=9, width=16, hidden=32).eval()
+    four = ObjectsBody(SHAPE, *GEOMETRY, k=4, width=16, hidden=32, layers=layers).eval()
+    nine = ObjectsBody(SHAPE, *GEOMETRY, k=9, width=16, hidden=32, layers=layers).eval()
     nine.load_state_dict(four.state_dict())
     x = torch.zeros(3, *SHAPE)
     x[:, RL, -1, 6:10] = 1.0
@@ -144,5 +149,7 @@ def test_the_reader_is_refused_where_it_cannot_read() -> None:
         validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "objects"}, "observation": {"frames": 1}})
     with pytest.raises(ConfigError, match="multiples of 4"):
         validate(PolicyTrainConfig, {"mode": "raw", "vfan": {"reader": "objects"}, "observation": {"height": 18}})
+    with pytest.raises(ConfigError, match="objects_layers"):
+        validate(VFANConfig, {"reader": "objects", "objects_layers": -1})
     with pytest.raises(ConfigError, match="objects_k"):
         validate(VFANConfig, {"reader": "objects", "objects_k": 0})

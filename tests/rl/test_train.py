@@ -150,7 +150,7 @@ LEARNER_OPTIONS = {"n_step": 3, "prioritized": True, "dueling": True, "tau": 0.0
 
 
 @pytest.mark.parametrize(("options", "vfan"), [({}, {}), (LEARNER_OPTIONS, {}), ({**LEARNER_OPTIONS, "augment_shift": 0}, {"reader": "attention"}),
-                                               ({**LEARNER_OPTIONS, "augment_shift": 0, "dueling": False}, {"reader": "objects", "objects_frames": 2}),
+                                               ({**LEARNER_OPTIONS, "augment_shift": 0, "dueling": False}, {"reader": "objects", "objects_frames": 2, "objects_layers": 1}),
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0}, {"reader": "attention"}),
                                                ({**LEARNER_OPTIONS, "augment_shift": 0, "aux_scale": 1.0, "aux_joint": True},
                                                 {"reader": "attention"}),
