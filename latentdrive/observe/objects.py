@@ -8,11 +8,11 @@ in the observer's axes: x ahead, y to its right, as the map is drawn,
 its speed relative to the observer), whether it is an AV, and its size in cells. Two cars
 whose footprints touch are one blob, and the sensor noise the map carries moves the places
 and drops vehicles from frames, as it does for any reader of the map: these are rules, not a
-tracker, and they read the newest frame only (a detector's motion estimate between frames
-misled its reader more than it informed it: docs/readers.md).
+tracker, and they read one frame (a detector's motion estimate between frames misled its
+reader more than it informed it: docs/readers.md); a reader of several frames calls them
+once per frame.
 
-Everything is torch, vectorized over the batch, so a Q-network can find the vehicles inside
-its forward pass on the device it runs on.
+Everything is torch, vectorized over the batch, on whatever device the maps are on.
 """
 
 from __future__ import annotations

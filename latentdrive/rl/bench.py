@@ -6,7 +6,8 @@ For each mode it runs the real training loop (:func:`latentdrive.rl.train.learne
 - learner updates/s: updates on a filled replay alone (sampling included);
 - end-to-end agent-transitions/s of the whole loop once learning has started;
 - the share of that wall time spent simulating, rendering VelocityMaps (and rewards),
-  encoding observations (the frozen encoder in latent modes), and learning; the rest is
+  encoding observations (what replay stores of them: the frozen encoder's code in latent
+  modes, the objects reader's vehicle rows), and learning; the rest is
   replay writing, action selection and bookkeeping.
 
 What bounds the learner: each row also counts the convolution and matrix-product

@@ -7,7 +7,7 @@ Transitions refer to observations by id. An observation store keeps them in a ri
   in the map ``(F,)``, computed once when the observation is collected. Both are fixed
   functions of the observation, so this is exactly what computing them at sampling time
   would give, at a fraction of the cost.
-- :class:`FrameStore` (raw and end-to-end modes): only the newest VelocityMap frame
+- :class:`FrameStore` (raw and end-to-end modes, but for the objects reader): only the newest VelocityMap frame
   ``(4, H, W)`` of each observation, as uint8 (``round(255·x)``), with the id of the same
   agent's previous frame. Sampling rebuilds the stack ``(4, T, H, W)`` by following those
   links, repeating the first frame of an episode as the env does. A stack shares T-1
@@ -92,8 +92,14 @@ class LatentStore:
         return {"data": self.data[:n], "added": np.array([self.added], dtype=np.int64)}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        if "prev" in arrays:
+            # A FrameStore's state: a raw-mode replay of map frames, e.g. an objects-reader run
+            # saved before that reader's rows were stored instead.
+            raise ValueError("the replay holds map frames, not the features this network stores (an objects-reader "
+                             "run saved before its vehicle rows were stored cannot resume; its checkpoint still "
+                             "evaluates)")
         added = _added(arrays)
-        _check(arrays["data"], self.data, added, "stored latents")
+        _check(arrays["data"], self.data, added, "stored features")
         _restore(self.data, arrays["data"], self.added, added, 0)
         self.added = added
 

@@ -107,6 +107,31 @@ def test_the_objects_reader_stores_the_vehicles_it_finds_once_and_reads_them_bac
         torch.testing.assert_close(net(stored), net(net.features(maps)))
 
 
+def test_a_replay_of_map_frames_is_refused_by_a_feature_store_and_changes_nothing():
+    # An objects-reader run saved while its replay held map frames cannot resume on rows.
+    frames = _filled_replay(FrameStore(16, (4, 2, 4, 4)), 5)
+    rows = _filled_replay(LatentStore(16, (3,)), 4, seed=1)
+    before = rows.state()
+    with pytest.raises(ValueError, match="holds map frames"):
+        rows.load_state(frames.state())
+    after = rows.state()
+    assert after.keys() == before.keys() and all(np.array_equal(after[k], before[k]) for k in before)
+
+
+def test_features_of_several_frames_are_each_observations_own():
+    # Rows of a batch are the rows each observation gives alone (frames stacked along the
+    # batch inside features() must come back to their own observation).
+    torch.manual_seed(0)
+    cfg = PolicyTrainConfig(mode="raw", observation=OBS, vfan={"reader": "objects", "objects_frames": 3})
+    net = build_network(cfg, None)
+    maps = torch.from_numpy(_record("raw", steps=3)[2][5]).expand(1, -1, -1, -1, -1)
+    batch = torch.cat([maps, torch.flip(maps, dims=[-1]), torch.zeros_like(maps)])
+    together = net.features(batch)
+    assert together[:2, -3 * 16 * 6:].reshape(2, 3, 16, 6)[..., -1].sum() > 0
+    for i in range(len(batch)):
+        torch.testing.assert_close(together[i:i + 1], net.features(batch[i:i + 1]), atol=0, rtol=0)
+
+
 def test_transitions_of_an_ended_episode_lead_to_its_final_observation():
     learner, _, seen = _record("raw", steps=40)
     r = learner.replay
