@@ -94,19 +94,17 @@ class ObjectsBody(nn.Module):
 
         A fixed function of the map, so replay stores it once per observation (as latent
         modes store the frozen encoder's code) instead of finding the vehicles again at
-        every update. Computed in fp32 whatever the autocast around it: the places and
-        values are inputs, not activations."""
-        with torch.autocast(x.device.type, enabled=False):
-            x = x.float()
-            b, t = x.shape[0], x.shape[2]
-            # Each frame as a stack that ends there, all in one batch (blob labels are unique
-            # across a batch): (frames·B, k, 6) → (B, frames·k, 6).
-            ends = torch.cat([x[:, :, t - 1 - age:t - age] for age in range(self.frames)])
-            vehicles = map_objects(ends, self.resolution, self.behind, self.k)
-            vehicles = vehicles.view(self.frames, b, self.k, PER_OBJECT).transpose(0, 1)
-            speed = x[:, MV, -2:].amax(dim=(-2, -1))  # (B, 2)
-            road = F.avg_pool2d(x[:, RL, -1:], ROAD_POOL).flatten(1)
-            return torch.cat([speed, road, vehicles.flatten(1)], dim=1)
+        every update. fp32 under any autocast: none of its ops is one autocast lowers."""
+        x = x.float()
+        b, t = x.shape[0], x.shape[2]
+        # Each frame as a stack that ends there, all in one batch (blob labels are unique
+        # across a batch): (frames·B, k, 6) → (B, frames·k, 6).
+        ends = torch.cat([x[:, :, t - 1 - age:t - age] for age in range(self.frames)])
+        vehicles = map_objects(ends, self.resolution, self.behind, self.k)
+        vehicles = vehicles.view(self.frames, b, self.k, PER_OBJECT).transpose(0, 1)
+        speed = x[:, MV, -2:].amax(dim=(-2, -1))  # (B, 2)
+        road = F.avg_pool2d(x[:, RL, -1:], ROAD_POOL).flatten(1)
+        return torch.cat([speed, road, vehicles.flatten(1)], dim=1)
 
     def forward(self, f: Tensor) -> Tensor:
         """:meth:`features`' rows ``(B, feature_size)`` → Q-values ``(B, n_actions)``."""

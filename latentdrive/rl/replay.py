@@ -7,8 +7,8 @@ Transitions refer to observations by id. An observation store keeps them in a ri
   in the map ``(F,)``, computed once when the observation is collected. Both are fixed
   functions of the observation, so this is exactly what computing them at sampling time
   would give, at a fraction of the cost.
-- :class:`FrameStore` (raw and end-to-end modes, but for the objects reader): only the newest VelocityMap frame
-  ``(4, H, W)`` of each observation, as uint8 (``round(255·x)``), with the id of the same
+- :class:`FrameStore` (raw and end-to-end modes but for the objects reader): only the
+  newest VelocityMap frame ``(4, H, W)`` of each observation, as uint8 (``round(255·x)``), with the id of the same
   agent's previous frame. Sampling rebuilds the stack ``(4, T, H, W)`` by following those
   links, repeating the first frame of an episode as the env does. A stack shares T-1
   frames with its predecessor, so this takes about 1/T of the memory of storing stacks,
@@ -92,12 +92,7 @@ class LatentStore:
         return {"data": self.data[:n], "added": np.array([self.added], dtype=np.int64)}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
-        if "prev" in arrays:
-            # A FrameStore's state: a raw-mode replay of map frames, e.g. an objects-reader run
-            # saved before that reader's rows were stored instead.
-            raise ValueError("the replay holds map frames, not the features this network stores (an objects-reader "
-                             "run saved before its vehicle rows were stored cannot resume; its checkpoint still "
-                             "evaluates)")
+        _same_kind(arrays, frames=False)
         added = _added(arrays)
         _check(arrays["data"], self.data, added, "stored features")
         _restore(self.data, arrays["data"], self.added, added, 0)
@@ -151,6 +146,7 @@ class FrameStore:
         return {"data": self.data[:n], "prev": self.prev[:n], "added": np.array([self.added], dtype=np.int64)}
 
     def load_state(self, arrays: dict[str, np.ndarray]) -> None:
+        _same_kind(arrays, frames=True)
         added = _added(arrays)
         _check(arrays["data"], self.data, added, "stored frames")
         _check(arrays["prev"], self.prev, added, "frame links")
@@ -309,6 +305,17 @@ def _added(arrays: dict[str, np.ndarray]) -> int:
     if a.shape != (1,) or a.dtype.kind not in "iu" or int(a[0]) < 0:
         raise ValueError(f"'added' is {a.dtype} {a.shape}, expected one count")
     return int(a[0])
+
+
+def _same_kind(arrays: dict[str, np.ndarray], frames: bool) -> None:
+    """Raise unless a store's saved ``arrays`` are of the kind that loads them: map frames
+    (a :class:`FrameStore`'s, which carry the ``prev`` links) or fixed features. A run
+    whose network changed what replay stores (an objects-reader run saved while its
+    replay held frames) cannot resume; its checkpoint still evaluates."""
+    if ("prev" in arrays) != frames:
+        held, wanted = ("map frames", "fixed features") if not frames else ("fixed features", "map frames")
+        raise ValueError(f"the replay holds {held}, this network stores {wanted}: the run cannot resume "
+                         "(its checkpoint still evaluates)")
 
 
 def _check(saved: np.ndarray, mine: np.ndarray, added: int, what: str) -> None:

@@ -107,14 +107,17 @@ def test_the_objects_reader_stores_the_vehicles_it_finds_once_and_reads_them_bac
         torch.testing.assert_close(net(stored), net(net.features(maps)))
 
 
-def test_a_replay_of_map_frames_is_refused_by_a_feature_store_and_changes_nothing():
-    # An objects-reader run saved while its replay held map frames cannot resume on rows.
+@pytest.mark.parametrize("frames_into_features", [True, False])
+def test_a_replay_of_the_other_store_kind_is_refused_and_changes_nothing(frames_into_features):
+    # An objects-reader run saved while its replay held map frames cannot resume on rows,
+    # nor a replay of rows into a network that stores frames.
     frames = _filled_replay(FrameStore(16, (4, 2, 4, 4)), 5)
     rows = _filled_replay(LatentStore(16, (3,)), 4, seed=1)
-    before = rows.state()
-    with pytest.raises(ValueError, match="holds map frames"):
-        rows.load_state(frames.state())
-    after = rows.state()
+    source, target = (frames, rows) if frames_into_features else (rows, frames)
+    before = target.state()
+    with pytest.raises(ValueError, match="holds map frames" if frames_into_features else "holds fixed features"):
+        target.load_state(source.state())
+    after = target.state()
     assert after.keys() == before.keys() and all(np.array_equal(after[k], before[k]) for k in before)
 
 
