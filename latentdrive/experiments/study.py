@@ -57,6 +57,9 @@ REPS = ("raw", "latent")
 ABLATIONS = ("latent-random", "end-to-end", "latent-lam")
 #: The imitation reference's policy kind (raw mode, learner dagger).
 IMITATION = "imitation"
+#: Every kind of policy the study trains, and the input mode each trains in.
+KINDS = (*REPS, *ABLATIONS, IMITATION)
+_MODE = {"latent-lam": "latent", IMITATION: "raw"}
 # Agent-transitions per second of a whole policy step on one core (quick study, 2 workers on
 # 2 cores); only for the progress display's ETA and the order in which steps start.
 _RATE = {"raw": 45.0, "latent": 110.0, "latent-random": 110.0, "end-to-end": 45.0, "latent-lam": 110.0,
@@ -69,10 +72,24 @@ class StudyPolicyConfig(Config):
     steps: int = Field(40_000, ge=1, le=10**10, description="Agent-transitions per policy trained from scratch.")
     finetune_steps: int = Field(10_000, ge=1, le=10**10, description="Agent-transitions of fine-tuning on the transfer target.")
     train: dict[str, Any] = Field(default_factory=dict, description="Further train-policy settings for every policy (dqn, vfan, envs, segment, eval_every, eval_episodes, threads, device); checked when the study is built.")
+    by_kind: dict[str, dict[str, Any]] = Field(
+        default_factory=dict,
+        description="Train-policy settings for the policies of one kind only (raw, latent, latent-random, end-to-end, "
+                    "latent-lam, imitation), merged over train: for example {raw: {vfan: {reader: objects}}} has the raw "
+                    "policies read the map through the objects reader while every kind keeps train's learner settings.")
     finetune: dict[str, Any] = Field(
         default_factory=lambda: {"dqn": {"eps_start": 0.2, "learning_starts": 500}},
         description="Settings that fine-tuning runs add to train: a pretrained policy needs less exploration, and a "
                     "short budget cannot wait for the default 2,000 transitions before learning.")
+
+
+    @field_validator("by_kind")
+    @classmethod
+    def _kinds(cls, v: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
+        unknown = [k for k in v if k not in KINDS]
+        if unknown:
+            raise ValueError(f"unknown policy kind {unknown[0]!r}: choose from {', '.join(KINDS)}")
+        return v
 
 
 class StudyEvalConfig(Config):
@@ -144,16 +161,22 @@ class ReproduceConfig(Config):
                              f"the latent policies' BNN: policy_bnn must be {max(self.bnn.latent_dims)}")
         return self
 
-    def policy_config(self, mode: str, scenarios: tuple[str, ...], seed: int, steps: int,
-                      finetune: bool = False, imitation: bool = False) -> PolicyTrainConfig:
-        """The train-policy config of one study policy (its BNN and initial weights are inputs);
-        with ``imitation``, the DAgger run whose expert is the study's planner."""
+    def policy_config(self, kind: str, scenarios: tuple[str, ...], seed: int, steps: int,
+                      finetune: bool = False) -> PolicyTrainConfig:
+        """The train-policy config of one study policy of ``kind`` (one of :data:`KINDS`; its BNN
+        and initial weights are inputs); for the imitation kind, the DAgger run whose expert is
+        the study's planner."""
+        mode = _MODE.get(kind, kind)
         data = merge_overrides({"mode": mode, "scenarios": list(scenarios), "seed": seed, "steps": steps,
                                 "observation": self.observation.model_dump(), "reward": self.reward.model_dump()},
                                self.policy.train)
+        where = "policy.train"
+        if kind in self.policy.by_kind:
+            data = merge_overrides(data, self.policy.by_kind[kind])
+            where = f"policy.train and policy.by_kind.{kind}"
         if finetune:
             data = merge_overrides(data, self.policy.finetune)
-        if imitation:
+        if kind == IMITATION:
             # The reference copies the study's own planner, whatever policy.train says.
             data = merge_overrides(data, {"learner": "dagger", "imitation.expert": "plan",
                                           "imitation.planner": self.evaluate.planner.model_dump()})
@@ -162,7 +185,7 @@ class ReproduceConfig(Config):
         try:
             cfg = validate(PolicyTrainConfig, data)
         except ConfigError as exc:
-            raise ConfigError(f"policy.train: {exc}") from None
+            raise ConfigError(f"{where}: {exc}") from None
         check_mission_pays(cfg)
         return cfg
 
@@ -237,9 +260,7 @@ def build_graph(cfg: ReproduceConfig, specs_stored: Mapping[str, ScenarioSpec] |
     eval_cost = ev.episodes * len(cfg.scenarios) * 0.05
 
     def policy(rep: str, train_set: str, scenarios: tuple[str, ...], seed: int, steps_: int, init: str | None = None) -> str:
-        mode = {"latent-lam": "latent", IMITATION: "raw"}.get(rep, rep)
-        pcfg = cfg.policy_config(mode, scenarios, seed, steps_, finetune=init is not None,
-                                 imitation=rep == IMITATION).model_dump(mode="json")
+        pcfg = cfg.policy_config(rep, scenarios, seed, steps_, finetune=init is not None).model_dump(mode="json")
         # The step's key holds the specs' hashes ("specs"); the run fills in the specs
         # themselves and stores them in its own config.json.
         pcfg.update(bnn=None, init_from=None)

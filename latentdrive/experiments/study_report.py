@@ -69,6 +69,14 @@ def summary_table(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _dotted(settings: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """Nested settings as ``(dotted name, value)`` pairs, in their order."""
+    out: list[tuple[str, Any]] = []
+    for k, v in settings.items():
+        out += _dotted(v, f"{prefix}{k}.") if isinstance(v, dict) else [(f"{prefix}{k}", v)]
+    return out
+
+
 def _scale(res: dict[str, Any]) -> list[str]:
     cfg = res["meta"]["config"]
     seeds, eps = res["seeds"], res["evaluation"]["episodes_per_scenario"]
@@ -76,6 +84,9 @@ def _scale(res: dict[str, Any]) -> list[str]:
              f"({cfg['policy']['finetune_steps']:,} of fine-tuning); {eps} evaluation episodes per scenario and policy "
              f"(mixed test set: {eps * len(res['scenarios'])}); BNNs trained {cfg['bnn']['train']['pretrain_epochs'] + cfg['bnn']['train']['mixed_epochs']} epochs "
              f"on {cfg['bnn']['collect']['episodes']} episodes per scenario."]
+    for kind, settings in (cfg["policy"].get("by_kind") or {}).items():
+        if settings:
+            lines.append(f"- `{kind}` policies only: " + ", ".join(f"`{k}={v}`" for k, v in _dotted(settings)) + ".")
     if seeds < 3:
         lines.append("- With fewer than 3 training seeds, intervals over seeds are missing or rest on very few "
                      "draws: the rates describe these trained policies, not the training method.")

@@ -214,3 +214,16 @@ def test_a_study_reports_from_the_specs_it_stored_not_todays_presets(
     assert today.record(copy, "evaluate/ref/random") is None
     (copy / "report.md").unlink()
     assert main(["report", str(copy)]) == 0 and _numbers(copy) == before
+
+
+def test_the_report_names_the_settings_of_one_kind(tiny_study: Path, tmp_path: Path) -> None:
+    from latentdrive.experiments.study_report import write_report
+
+    res = json.loads((tiny_study / "results.json").read_text())
+    write_report(res, tmp_path)
+    assert "policies only:" not in (tmp_path / "report.md").read_text()
+    res["meta"]["config"]["policy"]["by_kind"] = {"raw": {"vfan": {"reader": "objects", "objects_k": 8}}, "latent": {}}
+    write_report(res, tmp_path)
+    lines = (tmp_path / "report.md").read_text().splitlines()
+    assert "- `raw` policies only: `vfan.reader=objects`, `vfan.objects_k=8`." in lines
+    assert not any(line.startswith("- `latent` policies only") for line in lines)

@@ -59,6 +59,8 @@ def test_more_seeds_add_policies_and_leave_the_first_seed_untouched() -> None:
     ({"scenarios": ["merge", "latentdrive/scenarios/presets/exit.yaml"]}, "not spec files"),
     ({"evaluate": {"references": ["oracle"]}}, "unknown reference policy 'oracle'"),
     ({"policy": {"train": {"dqn": {"gamma": 0.999}}}}, "reward.mission"),
+    ({"policy": {"by_kind": {"rawest": {}}}}, "unknown policy kind 'rawest'"),
+    ({"policy": {"by_kind": {"raw": {"vfan": {"reader": "eyes"}}}}}, "policy.by_kind.raw.*reader"),
 ])
 def test_inconsistent_studies_are_refused_with_the_field_named(override: dict, needle: str) -> None:
     with pytest.raises(ConfigError, match=needle):
@@ -133,3 +135,26 @@ def test_policies_pinned_to_the_cpu_ask_a_scheduler_for_no_gpu() -> None:
     assert default["policy"] and default["bnn"] and not default["evaluate"] and not default["dataset"]
     pinned = wants({"policy": {"train": {"device": "cpu"}}})
     assert not pinned["policy"] and pinned["bnn"]
+
+
+def test_settings_of_one_kind_reach_its_policies_only() -> None:
+    plain = build_graph(load_reproduce_config("tiny"))
+    objects = build_graph(load_reproduce_config("tiny", {"policy": {
+        "train": {"dqn": {"lr": 3e-4}}, "by_kind": {"raw": {"vfan": {"reader": "objects"}, "dqn": {"n_step": 2}}}}}))
+    raw = [n for n in objects.steps if n.startswith("policy/raw/")]
+    assert len(raw) == 8  # 3 oracles, the mix, 3 leave-one-out and the fine-tuned one
+    for name in raw:
+        train = objects.steps[name].config["train"]
+        # Merged over train: the kind's own settings and train's learner settings both hold.
+        assert train["vfan"]["reader"] == "objects" and train["dqn"]["n_step"] == 2 and train["dqn"]["lr"] == 3e-4
+    ft = objects.steps["policy/raw/roundabout-finetuned/s0"].config["train"]
+    assert ft["dqn"]["eps_start"] == 0.2 and ft["dqn"]["n_step"] == 2  # fine-tuning still applies on top
+    for name, step in objects.steps.items():
+        if step.kind == "policy" and not name.startswith("policy/raw/"):
+            assert step.config["train"]["vfan"]["reader"] == "conv" and step.config["train"]["dqn"]["n_step"] == 1
+            assert step.config["train"]["dqn"]["lr"] == 3e-4
+    # The imitation reference is a raw-mode network, but not of kind raw.
+    assert objects.steps["policy/imitation/mixed/s0"].config["train"]["mode"] == "raw"
+    # An empty entry is no change: the keys stay those of the study without it.
+    empty = build_graph(load_reproduce_config("tiny", {"policy": {"by_kind": {"raw": {}}}}))
+    assert empty.keys == plain.keys
