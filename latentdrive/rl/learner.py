@@ -75,7 +75,12 @@ class Learner:
         self.cfg, self.net, self.device = cfg, net, device
         self.dtype = resolve_precision(cfg.precision, device)
         self.target = copy.deepcopy(net).requires_grad_(False)
-        self.optimizer = torch.optim.Adam(net.trainable_parameters(), lr=cfg.dqn.lr, eps=cfg.dqn.adam_eps)
+        # One fused kernel for every parameter instead of a loop of small ops: the Q-networks are
+        # small enough that the loop's per-op overhead was a sixth of an update on the CPU
+        # (`latentdrive bench --train`). A checkpoint keeps its optimizer's setting, so a run
+        # written before resumes as it began.
+        self.optimizer = torch.optim.Adam(net.trainable_parameters(), lr=cfg.dqn.lr, eps=cfg.dqn.adam_eps,
+                                          fused=device.type in ("cpu", "cuda"))
         d = cfg.dqn
         self.replay = Replay(d.buffer_size, make_store(net, cfg, n_slots), prioritized=d.prioritized,
                              alpha=d.priority_alpha, priority_eps=d.priority_eps)

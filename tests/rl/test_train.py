@@ -270,6 +270,27 @@ def test_the_optimizer_takes_the_configured_adam_eps(tiny):
         assert [g["eps"] for g in learner.optimizer.param_groups] == [eps]
 
 
+def test_the_optimizer_is_fused_and_a_checkpoint_keeps_the_setting_it_was_written_with(tmp_path, tiny):
+    import torch
+
+    from latentdrive.rl.learner import Learner
+    from latentdrive.rl.policy import build_network
+
+    cfg = tiny(mode="raw", steps=300)
+    train_policy(cfg, tmp_path / "run", **_quiet())
+    learner = Learner(cfg, build_network(cfg, None), torch.device("cpu"), 8)
+    assert [g["fused"] for g in learner.optimizer.param_groups] == [True]
+    learner.load(tmp_path / "run")
+    assert [g["fused"] for g in learner.optimizer.param_groups] == [True]
+    # A run written with the loop of small ops (before the fused kernel) resumes with it,
+    # so that it continues as it began.
+    learner.optimizer.param_groups[0]["fused"] = None
+    learner.save(tmp_path / "run", 0)
+    again = Learner(cfg, build_network(cfg, None), torch.device("cpu"), 8)
+    again.load(tmp_path / "run")
+    assert [g["fused"] for g in again.optimizer.param_groups] == [None]
+
+
 def _scripted_evaluations(rates, seen):
     """A stand-in for the periodic evaluation: reports ``rates`` in turn (mixed failure rate)
     and records the weights each one scored."""
