@@ -19,6 +19,7 @@ from typing import Any
 
 from latentdrive.config import ConfigError
 from latentdrive.experiments.graph import Graph, Step, StepRecord
+from latentdrive.rl.dqn import DQNConfig
 
 __all__ = ["Estimate", "estimate_study", "measured_rates", "scored_count", "step_size"]
 
@@ -45,7 +46,7 @@ def step_size(step: Step, epoch_samples: float | None = None) -> tuple[str, floa
     if step.kind == "bnn-report":
         return "bnn-report", float((len(c["runs"]) + 1) * _scored_samples(step, epoch_samples))
     if step.kind == "policy":
-        return f"policy:{c['train']['mode']}", float(c["train"]["steps"])
+        return _policy_class(c["train"]), float(c["train"]["steps"])
     if step.kind == "evaluate":
         ev = c["eval"]
         who = c.get("reference") or "policy"
@@ -54,6 +55,26 @@ def step_size(step: Step, epoch_samples: float | None = None) -> tuple[str, floa
         p = c["probe"]
         return "probes", float(p["episodes"] * len(p["scenarios"]))
     raise ConfigError(f"no size for step kind {step.kind!r}")
+
+
+def _policy_class(train: Mapping[str, Any]) -> str:
+    """``policy:<mode>``, then what changes the time per agent-transition several-fold where it
+    differs from the defaults: the map reader (the objects reader learns several times as fast
+    per update as the convolutional one), DAgger's planner labels, the updates per
+    agent-transition and the batch. A study measured with other such settings leaves the
+    class unmeasured rather than lending its times."""
+    parts = [f"policy:{train['mode']}"]
+    reader = (train.get("vfan") or {}).get("reader", "conv")
+    if reader != "conv":
+        parts.append(reader)
+    if train.get("learner", "dqn") != "dqn":
+        parts.append(train["learner"])
+    dqn = train.get("dqn") or {}
+    for key, short in (("updates_per_transition", "upt"), ("batch_size", "batch")):
+        value, default = dqn.get(key), DQNConfig.model_fields[key].default
+        if value is not None and value != default:
+            parts.append(f"{short}{value:g}")
+    return ":".join(parts)
 
 
 def _scored_samples(step: Step, epoch_samples: float | None) -> float:

@@ -165,3 +165,16 @@ def test_the_rates_preset_measures_every_step_class_of_the_paper_preset() -> Non
         t = cfg.policy.train
         assert t["eval_episodes"] * 1000 / t["segment"] == 2
         assert cfg.policy.finetune_steps % t["segment"] == 0  # fine-tuning evaluates as often
+
+
+def test_policy_classes_part_where_the_time_per_transition_does() -> None:
+    g = build_graph(load_reproduce_config("tiny", {"policy": {"by_kind": {
+        "raw": {"vfan": {"reader": "objects"}, "dqn": {"updates_per_transition": 1, "batch_size": 64}},
+        "latent": {"dqn": {"updates_per_transition": 0.125}}}}}))
+    classes = {n: step_size(s)[0] for n, s in g.steps.items() if s.kind == "policy"}
+    assert classes["policy/raw/mixed/s0"] == "policy:raw:objects:upt1:batch64"
+    # The tiny preset's 0.25 updates per transition and batch of 8 differ from the defaults;
+    # latent's own 0.125 is the default's.
+    assert classes["policy/latent/mixed/s0"] == "policy:latent:batch8"
+    assert classes["policy/end-to-end/mixed/s0"] == "policy:end-to-end:upt0.25:batch8"
+    assert classes["policy/imitation/mixed/s0"] == "policy:raw:dagger:upt0.25:batch8"
