@@ -19,6 +19,8 @@ from typing import Any
 
 from latentdrive.config import ConfigError
 from latentdrive.experiments.graph import Graph, Step, StepRecord
+from latentdrive.models.vfan import VFANConfig
+from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.dqn import DQNConfig
 
 __all__ = ["Estimate", "estimate_study", "measured_rates", "scored_count", "step_size"]
@@ -64,16 +66,17 @@ def _policy_class(train: Mapping[str, Any]) -> str:
     agent-transition and the batch. A study measured with other such settings leaves the
     class unmeasured rather than lending its times."""
     parts = [f"policy:{train['mode']}"]
-    reader = (train.get("vfan") or {}).get("reader", "conv")
-    if reader != "conv":
+    reader = (train.get("vfan") or {}).get("reader", VFANConfig.model_fields["reader"].default)
+    if reader != VFANConfig.model_fields["reader"].default:
         parts.append(reader)
-    if train.get("learner", "dqn") != "dqn":
-        parts.append(train["learner"])
+    learner = train.get("learner", PolicyTrainConfig.model_fields["learner"].default)
+    if learner != PolicyTrainConfig.model_fields["learner"].default:
+        parts.append(learner)
     dqn = train.get("dqn") or {}
     for key, short in (("updates_per_transition", "upt"), ("batch_size", "batch")):
-        value, default = dqn.get(key), DQNConfig.model_fields[key].default
-        if value is not None and value != default:
-            parts.append(f"{short}{value:g}")
+        default = DQNConfig.model_fields[key].default
+        if dqn.get(key, default) != default:
+            parts.append(f"{short}{dqn[key]:g}")
     return ":".join(parts)
 
 

@@ -193,7 +193,9 @@ def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]
     per_episode = collected / m_episodes if isinstance(collected, int) and collected > 0 else float(SAMPLES_PER_EPISODE)
     rates = measured_rates(m_graph, records, per_episode * m_episodes * (1 - m_cfg.bnn.val_fraction))
     for name, factor in (speedup or {}).items():
-        hit = [c for c in rates if c == name or c.split(":")[0] == name]
+        # A class, or a prefix of classes that ends at a ':' (policy:raw holds policy:raw:objects,
+        # not policy:raw-anything).
+        hit = [c for c in rates if c == name or c.startswith(f"{name}:")]
         if not hit:
             raise ConfigError(f"--speedup {name}: no such step class measured (known: {', '.join(sorted(rates))})")
         if not (math.isfinite(factor) and factor > 0):

@@ -71,7 +71,8 @@ def add_reproduce_parsers(sub: Any) -> None:
     s.add_argument("out", help="study folder (rerun the same command to resume; finished steps are skipped)")
     s.add_argument("--preset", default="quick", help="tiny (a minute), quick (default, about 17 min on 2 cores), "
                    "rates (quick's scale at the paper's costs per unit: measures what `estimate` scales), "
-                   "paper, or a .yaml file")
+                   "standard (every experiment, 3 seeds, 100,000 agent-transitions per policy: hours on 2 cores, "
+                   "see `estimate`), paper, or a .yaml file")
     s.add_argument("--seeds", type=int, default=None, help="training seeds per policy (default: the preset's)")
     s.add_argument("--workers", type=int, default=1, help="steps run at once, each in its own process (default 1; "
                    "with --ray local, the instance's CPUs); results do not depend on it")

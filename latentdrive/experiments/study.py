@@ -49,9 +49,9 @@ from latentdrive.scenarios import (
     resolve_specs,
 )
 
-__all__ = ["IMITATION", "PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config", "policy_name", "reference_name"]
+__all__ = ["IMITATION", "KINDS", "PRESETS", "ReproduceConfig", "build_graph", "load_reproduce_config", "policy_name", "reference_name"]
 
-PRESETS = ("tiny", "quick", "rates", "paper")
+PRESETS = ("tiny", "quick", "rates", "standard", "paper")
 PRESETS_DIR = Path(__file__).parent / "presets"
 REPS = ("raw", "latent")
 ABLATIONS = ("latent-random", "end-to-end", "latent-lam")
@@ -81,7 +81,6 @@ class StudyPolicyConfig(Config):
         default_factory=lambda: {"dqn": {"eps_start": 0.2, "learning_starts": 500}},
         description="Settings that fine-tuning runs add to train: a pretrained policy needs less exploration, and a "
                     "short budget cannot wait for the default 2,000 transitions before learning.")
-
 
     @field_validator("by_kind")
     @classmethod
@@ -152,6 +151,10 @@ class ReproduceConfig(Config):
         t = self.experiments.transfer_target
         if t is not None and t not in self.scenarios:
             raise ValueError(f"experiments.transfer_target {t!r} is not one of the scenarios")
+        # Every kind's settings are checked here, also those of a kind this study does not
+        # train (the report names them all).
+        for kind in self.policy.by_kind:
+            self.policy_config(kind, self.scenarios, 0, self.policy.steps)
         if self.experiments.ablations and not self.bnn.lambdas:
             raise ValueError("experiments.ablations needs a λ > 0 BNN (bnn.lambdas)")
         if self.experiments.ablations and self.policy_bnn != max(self.bnn.latent_dims):
@@ -184,14 +187,14 @@ class ReproduceConfig(Config):
             data["bnn"] = "(the study's BNN)"  # a placeholder for validation; the step fills in the path
         try:
             cfg = validate(PolicyTrainConfig, data)
+            check_mission_pays(cfg)
         except ConfigError as exc:
             raise ConfigError(f"{where}: {exc}") from None
-        check_mission_pays(cfg)
         return cfg
 
 
 def load_reproduce_config(preset: str, overrides: dict[str, Any] | None = None) -> ReproduceConfig:
-    """A named preset (``tiny``, ``quick``, ``paper``) or a YAML file, with dotted overrides applied."""
+    """A named preset (one of :data:`PRESETS`) or a YAML file, with dotted overrides applied."""
     return load_preset(ReproduceConfig, preset, {p: PRESETS_DIR / f"reproduce-{p}.yaml" for p in PRESETS}, overrides)
 
 

@@ -77,6 +77,15 @@ def _dotted(settings: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]
     return out
 
 
+def _raw_network(cfg: dict[str, Any]) -> str:
+    """What the ``raw`` policies are, in the report's opening sentence."""
+    own = ((cfg["policy"].get("by_kind") or {}).get("raw") or {}).get("vfan")
+    if own:
+        return ("a DQN that reads the raw maps through another network (`raw`: "
+                + ", ".join(f"`vfan.{k}={v}`" for k, v in _dotted(own)) + "), so not the paper's raw baseline")
+    return "the same network on the raw maps (`raw`)"
+
+
 def _scale(res: dict[str, Any]) -> list[str]:
     cfg = res["meta"]["config"]
     seeds, eps = res["seeds"], res["evaluation"]["episodes_per_scenario"]
@@ -139,7 +148,7 @@ def write_report(res: dict[str, Any], out: Path) -> str:
     refs = res["references"]
     md = [f"# latentdrive reproduce: {meta['preset'] or 'custom'} preset", "",
           "The paper's study: a denoising bottleneck (BNN) over stacked VelocityMaps, whose frozen latents "
-          "feed a 3D-convolutional DQN (`latent`), against the same network on the raw maps (`raw`).", "",
+          "feed a 3D-convolutional DQN (`latent`), against " + _raw_network(meta["config"]) + ".", "",
           "## What this run can and cannot show", "", *_scale(res),
           "- The failure rate (a crash, or the mission not completed in time) is the headline: a policy that "
           "always brakes rarely crashes. The planner (a lookahead with privileged access to the simulator) is the "

@@ -221,9 +221,12 @@ def test_the_report_names_the_settings_of_one_kind(tiny_study: Path, tmp_path: P
 
     res = json.loads((tiny_study / "results.json").read_text())
     write_report(res, tmp_path)
-    assert "policies only:" not in (tmp_path / "report.md").read_text()
+    report = (tmp_path / "report.md").read_text()
+    assert "policies only:" not in report and "against the same network on the raw maps (`raw`)." in report
     res["meta"]["config"]["policy"]["by_kind"] = {"raw": {"vfan": {"reader": "objects", "objects_k": 8}}, "latent": {}}
     write_report(res, tmp_path)
     lines = (tmp_path / "report.md").read_text().splitlines()
     assert "- `raw` policies only: `vfan.reader=objects`, `vfan.objects_k=8`." in lines
+    assert any("(`raw`: `vfan.reader=objects`, `vfan.objects_k=8`), so not the paper's raw baseline." in line
+               for line in lines)
     assert not any(line.startswith("- `latent` policies only") for line in lines)

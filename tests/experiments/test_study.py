@@ -61,6 +61,10 @@ def test_more_seeds_add_policies_and_leave_the_first_seed_untouched() -> None:
     ({"policy": {"train": {"dqn": {"gamma": 0.999}}}}, "reward.mission"),
     ({"policy": {"by_kind": {"rawest": {}}}}, "unknown policy kind 'rawest'"),
     ({"policy": {"by_kind": {"raw": {"vfan": {"reader": "eyes"}}}}}, "policy.by_kind.raw.*reader"),
+    # A kind this study does not train is checked too: the report names its settings.
+    ({"experiments": {"imitation": False}, "policy": {"by_kind": {"imitation": {"vfan": {"reader": "eyes"}}}}},
+     "policy.by_kind.imitation.*reader"),
+    ({"policy": {"by_kind": {"latent": {"dqn": {"gamma": 0.999}}}}}, "policy.by_kind.latent: reward.mission"),
 ])
 def test_inconsistent_studies_are_refused_with_the_field_named(override: dict, needle: str) -> None:
     with pytest.raises(ConfigError, match=needle):
@@ -153,8 +157,27 @@ def test_settings_of_one_kind_reach_its_policies_only() -> None:
         if step.kind == "policy" and not name.startswith("policy/raw/"):
             assert step.config["train"]["vfan"]["reader"] == "conv" and step.config["train"]["dqn"]["n_step"] == 1
             assert step.config["train"]["dqn"]["lr"] == 3e-4
-    # The imitation reference is a raw-mode network, but not of kind raw.
-    assert objects.steps["policy/imitation/mixed/s0"].config["train"]["mode"] == "raw"
     # An empty entry is no change: the keys stay those of the study without it.
     empty = build_graph(load_reproduce_config("tiny", {"policy": {"by_kind": {"raw": {}}}}))
     assert empty.keys == plain.keys
+
+
+def test_the_standard_preset_holds_every_experiment_for_three_seeds_with_one_learner() -> None:
+    g = build_graph(load_reproduce_config("standard"))
+    policies = {n: s.config["train"] for n, s in g.steps.items() if s.kind == "policy"}
+    # Per seed: 12 policies of each of raw and latent (5 oracles, the mix, 5 leave-one-out,
+    # the fine-tuned one) and 3 ablations.
+    assert len(policies) == 3 * (2 * 12 + 3)
+    learners = [(t["dqn"], t["reward"], t["precision"]) for n, t in policies.items() if "finetuned" not in n]
+    assert all(x == learners[0] for x in learners)  # one learner for every kind
+    dqn, reward, _ = learners[0]
+    assert (dqn["lr"], dqn["gamma"], dqn["target_update"], dqn["updates_per_transition"], dqn["n_step"]) == (
+        3.5e-4, 0.92, 485, 1.0, 2)
+    assert (reward["speed"], reward["failure"]) == (0.0625, -0.324)
+    # Fine-tuning evaluates as often as training from scratch does, so its curve has points.
+    ft = policies["policy/raw/roundabout-finetuned/s0"]
+    assert ft["steps"] // ft["segment"] >= 4 and ft["dqn"]["eps_start"] == 0.2
+    assert {t["vfan"]["reader"] for n, t in policies.items() if n.startswith("policy/raw/")} == {"objects"}
+    assert {t["vfan"]["reader"] for n, t in policies.items() if not n.startswith("policy/raw/")} == {"conv"}
+    assert {t["steps"] for n, t in policies.items() if "finetuned" not in n} == {100_000}
+    assert {s.config["eval"]["episodes"] for s in g.steps.values() if s.kind == "evaluate" and "cross/" not in s.name} == {200}
