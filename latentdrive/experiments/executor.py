@@ -28,6 +28,7 @@ from latentdrive.evaluate.stats import json_values
 from latentdrive.experiments.graph import Graph, Step, StepRecord
 from latentdrive.experiments.processes import Processes
 from latentdrive.fileio import peak_rss_mb, reset_peak_rss
+from latentdrive.provenance import source_revision
 
 __all__ = ["Runner", "StepFailed", "StepKind", "StepRecords", "check_kinds", "execute_step", "run_graph", "run_local"]
 
@@ -87,7 +88,8 @@ def execute_step(kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path
     summary = json_values(kind.run(step.config, inputs, folder))
     peak_mb = peak_rss_mb()
     rec = StepRecord(name=step.name, kind=step.kind, key=key, summary=summary,
-                     wall_s=round(time.perf_counter() - t0, 2), peak_rss_mb=round(peak_mb, 1))
+                     wall_s=round(time.perf_counter() - t0, 2), peak_rss_mb=round(peak_mb, 1),
+                     source=source_revision())
     records.write(rec)
     return rec
 

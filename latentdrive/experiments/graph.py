@@ -104,10 +104,13 @@ class StepRecord:
     summary: dict[str, Any]
     wall_s: float
     peak_rss_mb: float
+    #: The commit the step ran from (:func:`latentdrive.provenance.source_revision`); None
+    #: when unknown, and in records written before it was kept.
+    source: str | None = None
 
     def as_dict(self) -> dict[str, Any]:
         return {"name": self.name, "kind": self.kind, "key": self.key, "wall_s": self.wall_s,
-                "peak_rss_mb": self.peak_rss_mb, "summary": self.summary}
+                "peak_rss_mb": self.peak_rss_mb, "source": self.source, "summary": self.summary}
 
 
 class Graph:
@@ -175,7 +178,8 @@ class Graph:
         try:
             data = read_json(path, limit=MAX_JSON_BYTES, what="step record", error=FileFormatError)
             rec = StepRecord(name=data["name"], kind=data["kind"], key=data["key"], summary=dict(data["summary"]),
-                             wall_s=float(data["wall_s"]), peak_rss_mb=float(data["peak_rss_mb"]))
+                             wall_s=float(data["wall_s"]), peak_rss_mb=float(data["peak_rss_mb"]),
+                             source=None if data.get("source") is None else str(data["source"]))
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{path}: not a step record ({type(exc).__name__}: {exc})") from None
         if not all(math.isfinite(v) and v >= 0 for v in (rec.wall_s, rec.peak_rss_mb)):

@@ -47,7 +47,8 @@ def _environment() -> dict[str, Any]:
 
 
 def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset: str = "", progress: bool = True,
-              ray: str | None = None, gpu_fraction: float = 1.0, say: Callable[[str], None] = print) -> dict[str, Any]:
+              ray: str | None = None, gpu_fraction: float = 1.0, say: Callable[[str], None] = print,
+              command: str | None = None) -> dict[str, Any]:
     """Run (or resume) every unfinished step, then write results.json, report.md and figures.
 
     Steps run in ``workers`` local processes, or as tasks on the Ray cluster at ``ray``
@@ -104,8 +105,8 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
         else:
             run_local(graph, out, STEP_KINDS, workers=workers, preload=PRELOAD, progress=progress)
         wall = time.perf_counter() - t0
-        return _report(cfg, graph, out, preset, {"workers": f"ray {ray}" if ray else workers, "wall_s": round(wall, 1)},
-                       say)
+        return _report(cfg, graph, out, preset, {"workers": f"ray {ray}" if ray else workers, "wall_s": round(wall, 1),
+                                                 "command": command}, say)
 
 
 def _report(cfg: ReproduceConfig, graph: Graph, out: Path, preset: str, run: dict[str, Any],

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import shlex
 from typing import Any
 
 from latentdrive.config import LatentDriveError, parse_override_args, unit_fraction
@@ -18,8 +19,13 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     if args.seeds is not None:
         overrides["seeds"] = args.seeds
     cfg = load_reproduce_config(args.preset, overrides)
+    # The command as the report shows it: what a reader runs to get the same study.
+    command = shlex.join(["latentdrive", "reproduce", str(args.out), "--preset", args.preset,
+                          *(["--seeds", str(args.seeds)] if args.seeds is not None else []),
+                          *[a for o in args.overrides for a in ("--set", o)], "--workers", str(args.workers),
+                          *(["--ray", args.ray] if args.ray else [])])
     run_study(cfg, args.out, workers=args.workers, preset=args.preset, progress=not args.quiet, ray=args.ray,
-              gpu_fraction=args.gpu_fraction)
+              gpu_fraction=args.gpu_fraction, command=command)
     print(f"report: {args.out}/report.md")
     return 0
 

@@ -86,6 +86,25 @@ def _raw_network(cfg: dict[str, Any]) -> str:
     return "the same network on the raw maps (`raw`)"
 
 
+def _provenance(command: str | None, steps: dict[str, Any]) -> list[str]:
+    """Report lines: the command of the last run, and the commits the steps ran from."""
+    lines = [f"- Command of the last run: `{command}`."] if command else []
+    counts: dict[str, int] = {}
+    for s in steps.values():
+        source = s.get("source") or "unknown"
+        counts[source] = counts.get(source, 0) + 1
+    if list(counts) == ["unknown"]:
+        lines.append("- Code: the commit the steps ran from is unknown (not a git checkout, or steps recorded before "
+                     "commits were kept).")
+    elif len(counts) == 1:
+        lines.append(f"- Code: every step ran from commit `{next(iter(counts))}`.")
+    else:
+        lines.append("- Code: **the steps ran from more than one commit**: "
+                     + ", ".join(f"`{c}` ({n} steps)" for c, n in sorted(counts.items(), key=lambda x: -x[1]))
+                     + "; compare them before reading the results as one study's.")
+    return lines
+
+
 def _scale(res: dict[str, Any]) -> list[str]:
     cfg = res["meta"]["config"]
     seeds, eps = res["seeds"], res["evaluation"]["episodes_per_scenario"]
@@ -265,6 +284,7 @@ def write_report(res: dict[str, Any], out: Path) -> str:
     md += ["", "## Cost, hardware, versions", "",
            f"- Last run: {meta['last_run'].get('wall_s', '–')} s wall with {meta['last_run'].get('workers', '–')} "
            f"worker(s); {total:.0f} s of step time in all (finished steps of earlier runs included).",
+           *_provenance(meta["last_run"].get("command"), steps),
            f"- Peak memory of a step: {max(s['peak_rss_mb'] for s in steps.values()):.0f} MB.",
            f"- Machine: {env['machine']}, {env['cpus']} CPUs, GPU: {env['gpu'] or 'none'}; latentdrive "
            f"{env.get('latentdrive', '–')}, Python {env['python']}, torch {env['torch']}, numpy {env['numpy']}.", ""]

@@ -5,6 +5,7 @@ rebuilt from the finished steps alone."""
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -230,3 +231,26 @@ def test_the_report_names_the_settings_of_one_kind(tiny_study: Path, tmp_path: P
     assert any("(`raw`: `vfan.reader=objects`, `vfan.objects_k=8`), so not the paper's raw baseline." in line
                for line in lines)
     assert not any(line.startswith("- `latent` policies only") for line in lines)
+
+
+def test_the_report_names_the_command_and_the_commits_the_steps_ran_from(tiny_study: Path, tmp_path: Path) -> None:
+    from latentdrive.experiments.study_report import write_report
+    from latentdrive.provenance import source_revision
+
+    res = json.loads((tiny_study / "results.json").read_text())
+    # The fixture's steps ran from this checkout (or from no checkout: unknown).
+    assert {s["source"] for s in res["steps"].values()} <= {source_revision(), None}
+    lines = (tiny_study / "report.md").read_text().splitlines()
+    # Other tests run the study again with another worker count: the last run's command is the report's.
+    assert any(re.fullmatch(rf"- Command of the last run: `latentdrive reproduce {re.escape(str(tiny_study))} "
+                            r"--preset tiny --workers [12]`\.", line) for line in lines)
+    assert any(line.startswith("- Code: every step ran from commit `") or line.startswith("- Code: the commit")
+               for line in lines)
+    # Steps from two commits, and records from before commits were kept, are told apart.
+    names = sorted(res["steps"])
+    for i, name in enumerate(names):
+        res["steps"][name]["source"] = ("aaaaaaaaaaaa", "bbbbbbbbbbbb+changes", None)[i % 3]
+    write_report(res, tmp_path)
+    code = next(line for line in (tmp_path / "report.md").read_text().splitlines() if line.startswith("- Code:"))
+    assert "more than one commit" in code and "`aaaaaaaaaaaa`" in code and "`bbbbbbbbbbbb+changes`" in code
+    assert "`unknown`" in code
