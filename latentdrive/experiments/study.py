@@ -82,13 +82,36 @@ class StudyPolicyConfig(Config):
         description="Settings that fine-tuning runs add to train: a pretrained policy needs less exploration, and a "
                     "short budget cannot wait for the default 2,000 transitions before learning.")
 
+    @field_validator("train", "finetune")
+    @classmethod
+    def _not_the_studys(cls, v: dict[str, Any]) -> dict[str, Any]:
+        return _without_study_settings(v, "")
+
     @field_validator("by_kind")
     @classmethod
     def _kinds(cls, v: dict[str, dict[str, Any]]) -> dict[str, dict[str, Any]]:
         unknown = [k for k in v if k not in KINDS]
         if unknown:
             raise ValueError(f"unknown policy kind {unknown[0]!r}: choose from {', '.join(KINDS)}")
+        for kind, settings in v.items():
+            _without_study_settings(settings, f"{kind}.")
         return v
+
+
+#: Train-policy settings that the study sets for each policy from its own fields.
+_STUDY_SET = {"mode": "the policy's kind", "scenarios": "the experiment", "seed": "seeds",
+              "steps": "policy.steps and policy.finetune_steps", "observation": "observation", "reward": "reward",
+              "bnn": "the study's BNN", "init_from": "the experiment", "specs": "scenarios"}
+
+
+def _without_study_settings(settings: dict[str, Any], where: str) -> dict[str, Any]:
+    """``settings``, refused where they hold one the study sets itself (a silent override
+    would make one policy differ from the study's record of it)."""
+    for key in settings:
+        head = str(key).split(".")[0]
+        if head in _STUDY_SET:
+            raise ValueError(f"{where}{key}: set by the study ({_STUDY_SET[head]}), not here")
+    return settings
 
 
 class StudyEvalConfig(Config):
