@@ -2,29 +2,45 @@
 
 from __future__ import annotations
 
+import functools
+import os
 import subprocess
 from pathlib import Path
 
-__all__ = ["source_revision"]
+__all__ = ["loaded_revision", "source_revision"]
+
+#: What decides a result: the package and its requirements; docs and tests do not.
+_CODE = ("latentdrive", "pyproject.toml")
 
 
 def source_revision() -> str | None:
     """The commit (12 hex digits) of the git checkout this package is imported from, with
-    ``+changes`` when its tracked files differ from that commit; None outside a checkout (an
-    installed wheel) or where git cannot say.
+    ``+changes`` when the package's files (tracked or new) or ``pyproject.toml`` differ from
+    it; None outside a checkout (an installed wheel) or where git cannot say.
 
-    Asked afresh at each call: a long study may outlive a commit of the tree it runs from.
+    Never raises: a result is not lost to a question about its provenance.
     """
     root = Path(__file__).resolve().parent.parent
     if not (root / ".git").exists():  # a folder, or a file in a worktree
         return None
+    # The checkout of this file, whatever repository a caller's environment points git at;
+    # no optional locks, so that a user's own git command is never refused meanwhile.
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
     try:
-        def git(*args: str) -> str:
-            return subprocess.run(["git", "-C", str(root), *args], capture_output=True, text=True, timeout=30,
-                                  check=True).stdout.strip()
+        def git(*args: str) -> bytes:
+            return subprocess.run(["git", "--no-optional-locks", "-C", str(root), *args], capture_output=True,
+                                  timeout=5, check=True, env=env).stdout.strip()
 
-        head = git("rev-parse", "HEAD")
-        changed = git("status", "--porcelain", "--untracked-files=no")
-    except (OSError, subprocess.SubprocessError):
+        head = git("rev-parse", "HEAD").decode("ascii")
+        changed = git("status", "--porcelain", "--", *_CODE)
+    except (OSError, subprocess.SubprocessError, ValueError):
         return None
     return head[:12] + ("+changes" if changed else "")
+
+
+@functools.cache
+def loaded_revision() -> str | None:
+    """:func:`source_revision` as of this process's first call. Called where the code that
+    produces results is imported, it names that code even if the checkout changes later
+    while the process runs (a long study's workers keep the code they loaded)."""
+    return source_revision()

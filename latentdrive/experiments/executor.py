@@ -28,7 +28,7 @@ from latentdrive.evaluate.stats import json_values
 from latentdrive.experiments.graph import Graph, Step, StepRecord
 from latentdrive.experiments.processes import Processes
 from latentdrive.fileio import peak_rss_mb, reset_peak_rss
-from latentdrive.provenance import source_revision
+from latentdrive.provenance import loaded_revision
 
 __all__ = ["Runner", "StepFailed", "StepKind", "StepRecords", "check_kinds", "execute_step", "run_graph", "run_local"]
 
@@ -68,6 +68,11 @@ class StepFailed(LatentDriveError):
     """Steps of a study failed; the message names each with its error."""
 
 
+# The commit of the code this process loads: the step code is imported with this module
+# (by a study's fork server at its start, or by a Ray worker), so pin it now rather than
+# when a step ends, after the checkout may have moved on.
+loaded_revision()
+
 def execute_step(kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
                  records: StepRecords) -> StepRecord:
     """Run one step into ``folder`` and record it; this is what a worker process does.
@@ -89,7 +94,7 @@ def execute_step(kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path
     peak_mb = peak_rss_mb()
     rec = StepRecord(name=step.name, kind=step.kind, key=key, summary=summary,
                      wall_s=round(time.perf_counter() - t0, 2), peak_rss_mb=round(peak_mb, 1),
-                     source=source_revision())
+                     source=loaded_revision())
     records.write(rec)
     return rec
 

@@ -99,18 +99,21 @@ class StudyPolicyConfig(Config):
 
 
 #: Train-policy settings that the study sets for each policy from its own fields.
-_STUDY_SET = {"mode": "the policy's kind", "scenarios": "the experiment", "seed": "seeds",
-              "steps": "policy.steps and policy.finetune_steps", "observation": "observation", "reward": "reward",
-              "bnn": "the study's BNN", "init_from": "the experiment", "specs": "scenarios"}
+_STUDY_SET = {"mode": "the policy's kind", "learner": "the policy's kind", "scenarios": "the experiment",
+              "seed": "seeds", "steps": "policy.steps and policy.finetune_steps", "observation": "observation",
+              "reward": "reward", "bnn": "the study's BNN", "init_from": "the experiment", "specs": "scenarios",
+              "imitation.expert": "the imitation kind: the planner", "imitation.planner": "evaluate.planner"}
 
 
 def _without_study_settings(settings: dict[str, Any], where: str) -> dict[str, Any]:
     """``settings``, refused where they hold one the study sets itself (a silent override
     would make one policy differ from the study's record of it)."""
-    for key in settings:
-        head = str(key).split(".")[0]
-        if head in _STUDY_SET:
-            raise ValueError(f"{where}{key}: set by the study ({_STUDY_SET[head]}), not here")
+    for key, value in settings.items():
+        names = [f"{key}.{k}" for k in value] if isinstance(value, Mapping) else [str(key)]
+        for name in (str(key), *names):
+            set_by = _STUDY_SET.get(name.split(".")[0]) or _STUDY_SET.get(".".join(name.split(".")[:2]))
+            if set_by:
+                raise ValueError(f"{where}{name}: set by the study ({set_by}), not here")
     return settings
 
 

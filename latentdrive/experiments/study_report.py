@@ -91,17 +91,21 @@ def _provenance(command: str | None, steps: dict[str, Any]) -> list[str]:
     lines = [f"- Command of the last run: `{command}`."] if command else []
     counts: dict[str, int] = {}
     for s in steps.values():
-        source = s.get("source") or "unknown"
-        counts[source] = counts.get(source, 0) + 1
-    if list(counts) == ["unknown"]:
-        lines.append("- Code: the commit the steps ran from is unknown (not a git checkout, or steps recorded before "
-                     "commits were kept).")
+        if s.get("source"):
+            counts[s["source"]] = counts.get(s["source"], 0) + 1
+    unknown = len(steps) - sum(counts.values())
+    rest = (f"; {unknown} steps' commit unknown (not run from a git checkout, or recorded before commits were kept)"
+            if unknown else "")
+    if not counts:
+        lines.append("- Code: the commit the steps ran from is unknown (not run from a git checkout, or recorded "
+                     "before commits were kept).")
     elif len(counts) == 1:
-        lines.append(f"- Code: every step ran from commit `{next(iter(counts))}`.")
+        (commit, n), = counts.items()
+        lines.append(f"- Code: {'every step' if not unknown else f'{n} steps'} ran from commit `{commit}`{rest}.")
     else:
         lines.append("- Code: **the steps ran from more than one commit**: "
                      + ", ".join(f"`{c}` ({n} steps)" for c, n in sorted(counts.items(), key=lambda x: -x[1]))
-                     + "; compare them before reading the results as one study's.")
+                     + rest + "; compare the commits before reading the results as one study's.")
     return lines
 
 

@@ -253,4 +253,10 @@ def test_the_report_names_the_command_and_the_commits_the_steps_ran_from(tiny_st
     write_report(res, tmp_path)
     code = next(line for line in (tmp_path / "report.md").read_text().splitlines() if line.startswith("- Code:"))
     assert "more than one commit" in code and "`aaaaaaaaaaaa`" in code and "`bbbbbbbbbbbb+changes`" in code
-    assert "`unknown`" in code
+    assert f"; {len(names) // 3} steps' commit unknown" in code
+    # One commit beside records from before commits were kept: not "more than one commit".
+    for i, name in enumerate(names):
+        res["steps"][name]["source"] = "aaaaaaaaaaaa" if i else None
+    write_report(res, tmp_path)
+    code = next(line for line in (tmp_path / "report.md").read_text().splitlines() if line.startswith("- Code:"))
+    assert code.startswith(f"- Code: {len(names) - 1} steps ran from commit `aaaaaaaaaaaa`; 1 steps' commit unknown")

@@ -63,6 +63,9 @@ def test_more_seeds_add_policies_and_leave_the_first_seed_untouched() -> None:
     ({"policy": {"by_kind": {"raw": {"steps": 5}}}}, r"by_kind: raw.steps: set by the study \(policy.steps"),
     ({"policy": {"train": {"reward.speed": 1.0}}}, r"train: reward: set by the study \(reward\)"),
     ({"policy": {"finetune": {"seed": 3}}}, r"finetune: seed: set by the study \(seeds\)"),
+    ({"policy": {"train": {"learner": "dagger"}}}, r"train: learner: set by the study \(the policy's kind\)"),
+    ({"policy": {"by_kind": {"imitation": {"imitation": {"expert": "rule"}}}}},
+     r"imitation.imitation.expert: set by the study"),
     ({"policy": {"by_kind": {"raw": {"vfan": {"reader": "eyes"}}}}}, "policy.by_kind.raw.*reader"),
     # A kind this study does not train is checked too: the report names its settings.
     ({"experiments": {"imitation": False}, "policy": {"by_kind": {"imitation": {"vfan": {"reader": "eyes"}}}}},
