@@ -29,6 +29,7 @@ __all__ = [
     "NoiseConfig",
     "ObservationConfig",
     "config_hash",
+    "dotted_items",
     "load_preset",
     "load_yaml",
     "merge_overrides",
@@ -89,6 +90,15 @@ def validate(model: type[C], data: Mapping[str, Any], prefix: str = "",
         return model.model_validate(dict(data), context=dict(context) if context is not None else None)
     except ValidationError as exc:
         raise ConfigError("invalid config: " + describe_validation_error(exc, prefix)) from None
+
+
+def dotted_items(settings: Mapping[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
+    """Nested settings as ``(dotted name, value)`` pairs in their order: the inverse of the
+    dotted keys :func:`merge_overrides` expands."""
+    out: list[tuple[str, Any]] = []
+    for k, v in settings.items():
+        out += dotted_items(v, f"{prefix}{k}.") if isinstance(v, Mapping) else [(f"{prefix}{k}", v)]
+    return out
 
 
 def merge_overrides(base: Mapping[str, Any], overrides: Mapping[str, Any]) -> dict[str, Any]:

@@ -23,19 +23,21 @@ def source_revision() -> str | None:
     root = Path(__file__).resolve().parent.parent
     if not (root / ".git").exists():  # a folder, or a file in a worktree
         return None
-    # The checkout of this file, whatever repository a caller's environment points git at;
-    # no optional locks, so that a user's own git command is never refused meanwhile.
-    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
     try:
-        def git(*args: str) -> bytes:
-            return subprocess.run(["git", "--no-optional-locks", "-C", str(root), *args], capture_output=True,
-                                  timeout=5, check=True, env=env).stdout.strip()
-
-        head = git("rev-parse", "HEAD").decode("ascii")
-        changed = git("status", "--porcelain", "--", *_CODE)
+        head = _git(root, "rev-parse", "HEAD").decode("ascii")
+        changed = _git(root, "status", "--porcelain", "--", *_CODE)
     except (OSError, subprocess.SubprocessError, ValueError):
         return None
     return head[:12] + ("+changes" if changed else "")
+
+
+def _git(root: Path, *args: str) -> bytes:
+    """git's output in the checkout ``root``, whatever repository a caller's environment points
+    git at (GIT_* dropped), without optional locks so that a user's own git command is never
+    refused meanwhile."""
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
+    return subprocess.run(["git", "--no-optional-locks", "-C", str(root), *args], capture_output=True, timeout=5,
+                          check=True, env=env).stdout.strip()
 
 
 @functools.cache

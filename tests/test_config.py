@@ -62,3 +62,11 @@ def test_a_section_given_whole_keeps_keys_with_dots_and_odd_keys_stay_for_valida
     specs = {"specs": {"runs/my.yaml": {"name": "x"}}}
     assert merge_overrides({}, specs) == specs
     assert merge_overrides({"dqn": {"lr": 1}}, {"dqn": {1: 2}}) == {"dqn": {"lr": 1, 1: 2}}
+
+
+def test_dotted_items_undo_the_dotted_keys_merge_overrides_expands() -> None:
+    from latentdrive.config import dotted_items, merge_overrides
+
+    nested = {"dqn": {"lr": 1e-3, "n_step": 2}, "vfan": {"reader": "objects"}, "seed": 3}
+    assert dotted_items(nested) == [("dqn.lr", 1e-3), ("dqn.n_step", 2), ("vfan.reader", "objects"), ("seed", 3)]
+    assert merge_overrides({}, dict(dotted_items(nested))) == nested

@@ -73,6 +73,7 @@ class StepFailed(LatentDriveError):
 # when a step ends, after the checkout may have moved on.
 loaded_revision()
 
+
 def execute_step(kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path], folder: Path,
                  records: StepRecords) -> StepRecord:
     """Run one step into ``folder`` and record it; this is what a worker process does.

@@ -30,6 +30,7 @@ from latentdrive.config import (
     Config,
     ConfigError,
     ObservationConfig,
+    dotted_items,
     load_preset,
     merge_overrides,
     validate,
@@ -108,12 +109,11 @@ _STUDY_SET = {"mode": "the policy's kind", "learner": "the policy's kind", "scen
 def _without_study_settings(settings: dict[str, Any], where: str) -> dict[str, Any]:
     """``settings``, refused where they hold one the study sets itself (a silent override
     would make one policy differ from the study's record of it)."""
-    for key, value in settings.items():
-        names = [f"{key}.{k}" for k in value] if isinstance(value, Mapping) else [str(key)]
-        for name in (str(key), *names):
-            set_by = _STUDY_SET.get(name.split(".")[0]) or _STUDY_SET.get(".".join(name.split(".")[:2]))
-            if set_by:
-                raise ValueError(f"{where}{name}: set by the study ({set_by}), not here")
+    for name, _ in dotted_items(settings):
+        parts = name.split(".")
+        for prefix in (parts[0], ".".join(parts[:2])):
+            if prefix in _STUDY_SET:
+                raise ValueError(f"{where}{prefix}: set by the study ({_STUDY_SET[prefix]}), not here")
     return settings
 
 

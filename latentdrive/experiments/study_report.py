@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import shutil
+from collections import Counter
 from pathlib import Path
 from typing import Any
 
 import yaml
 
+from latentdrive.config import dotted_items
 from latentdrive.experiments.study_figures import write_study_figures
 from latentdrive.fileio import atomic_write_text
 
@@ -69,44 +71,30 @@ def summary_table(res: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-def _dotted(settings: dict[str, Any], prefix: str = "") -> list[tuple[str, Any]]:
-    """Nested settings as ``(dotted name, value)`` pairs, in their order."""
-    out: list[tuple[str, Any]] = []
-    for k, v in settings.items():
-        out += _dotted(v, f"{prefix}{k}.") if isinstance(v, dict) else [(f"{prefix}{k}", v)]
-    return out
-
-
 def _raw_network(cfg: dict[str, Any]) -> str:
     """What the ``raw`` policies are, in the report's opening sentence."""
     own = ((cfg["policy"].get("by_kind") or {}).get("raw") or {}).get("vfan")
     if own:
         return ("a DQN that reads the raw maps through another network (`raw`: "
-                + ", ".join(f"`vfan.{k}={v}`" for k, v in _dotted(own)) + "), so not the paper's raw baseline")
+                + ", ".join(f"`vfan.{k}={v}`" for k, v in dotted_items(own)) + "), so not the paper's raw baseline")
     return "the same network on the raw maps (`raw`)"
 
 
 def _provenance(command: str | None, steps: dict[str, Any]) -> list[str]:
     """Report lines: the command of the last run, and the commits the steps ran from."""
     lines = [f"- Command of the last run: `{command}`."] if command else []
-    counts: dict[str, int] = {}
-    for s in steps.values():
-        if s.get("source"):
-            counts[s["source"]] = counts.get(s["source"], 0) + 1
+    counts = Counter(s["source"] for s in steps.values() if s.get("source"))
     unknown = len(steps) - sum(counts.values())
-    rest = (f"; {unknown} steps' commit unknown (not run from a git checkout, or recorded before commits were kept)"
-            if unknown else "")
+    why = "not run from a git checkout, or recorded before commits were kept"
     if not counts:
-        lines.append("- Code: the commit the steps ran from is unknown (not run from a git checkout, or recorded "
-                     "before commits were kept).")
-    elif len(counts) == 1:
+        return [*lines, f"- Code: the commit the steps ran from is unknown ({why})."]
+    rest = f"; {unknown} steps' commit unknown ({why})" if unknown else ""
+    if len(counts) == 1:
         (commit, n), = counts.items()
-        lines.append(f"- Code: {'every step' if not unknown else f'{n} steps'} ran from commit `{commit}`{rest}.")
-    else:
-        lines.append("- Code: **the steps ran from more than one commit**: "
-                     + ", ".join(f"`{c}` ({n} steps)" for c, n in sorted(counts.items(), key=lambda x: -x[1]))
-                     + rest + "; compare the commits before reading the results as one study's.")
-    return lines
+        return [*lines, f"- Code: {f'{n} steps' if unknown else 'every step'} ran from commit `{commit}`{rest}."]
+    return [*lines, "- Code: **the steps ran from more than one commit**: "
+            + ", ".join(f"`{c}` ({n} steps)" for c, n in counts.most_common())
+            + rest + "; compare the commits before reading the results as one study's."]
 
 
 def _scale(res: dict[str, Any]) -> list[str]:
@@ -118,7 +106,7 @@ def _scale(res: dict[str, Any]) -> list[str]:
              f"on {cfg['bnn']['collect']['episodes']} episodes per scenario."]
     for kind, settings in (cfg["policy"].get("by_kind") or {}).items():
         if settings:
-            lines.append(f"- `{kind}` policies only: " + ", ".join(f"`{k}={v}`" for k, v in _dotted(settings)) + ".")
+            lines.append(f"- `{kind}` policies only: " + ", ".join(f"`{k}={v}`" for k, v in dotted_items(settings)) + ".")
     if seeds < 3:
         lines.append("- With fewer than 3 training seeds, intervals over seeds are missing or rest on very few "
                      "draws: the rates describe these trained policies, not the training method.")

@@ -76,9 +76,9 @@ class Learner:
         self.dtype = resolve_precision(cfg.precision, device)
         self.target = copy.deepcopy(net).requires_grad_(False)
         # One fused kernel for every parameter instead of a loop of small ops: the Q-networks are
-        # small enough that the loop's per-op overhead was a sixth of an update on the CPU
-        # (`latentdrive bench --train`). A checkpoint keeps its optimizer's setting, so a run
-        # written before resumes as it began.
+        # small enough that the loop's per-op overhead shows (1.10-1.14x agent-transitions/s by
+        # `latentdrive bench --train`, docs/performance.md). A checkpoint keeps its optimizer's
+        # setting, so a run written before resumes as it began.
         self.optimizer = torch.optim.Adam(net.trainable_parameters(), lr=cfg.dqn.lr, eps=cfg.dqn.adam_eps,
                                           fused=device.type in ("cpu", "cuda"))
         d = cfg.dqn
