@@ -118,7 +118,7 @@ def measured_rates(graph: Graph, records: Mapping[str, StepRecord], epoch_sample
     size: dict[str, float] = {}
     for name, rec in records.items():
         cls, n = step_size(graph.steps[name], epoch_samples)
-        wall[cls] = wall.get(cls, 0.0) + rec.wall_s
+        wall[cls] = wall.get(cls, 0.0) + rec.cost_s
         size[cls] = size.get(cls, 0.0) + n
     return {cls: wall[cls] / size[cls] for cls in wall if size[cls] > 0}
 

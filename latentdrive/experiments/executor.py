@@ -25,7 +25,7 @@ from tqdm.auto import tqdm
 
 from latentdrive.errors import LatentDriveError, first_line
 from latentdrive.evaluate.stats import json_values
-from latentdrive.experiments.graph import Graph, Step, StepRecord
+from latentdrive.experiments.graph import RESUMED, Graph, Step, StepRecord
 from latentdrive.experiments.processes import Processes
 from latentdrive.fileio import peak_rss_mb, reset_peak_rss
 from latentdrive.provenance import loaded_revision
@@ -44,7 +44,9 @@ class StepKind:
             ``folder`` and returns a small JSON summary. Must be a module-level function
             (it is sent to worker processes by reference).
         resumable: a folder left by an interrupted attempt is continued (``run`` resumes
-            from what it finds); otherwise it is cleared first.
+            from what it finds); otherwise it is cleared first. A resumable ``run`` may
+            report under :data:`~latentdrive.experiments.graph.RESUMED` the seconds its
+            earlier attempts spent on what it resumed from (the record's ``resumed_s``).
         cpus: cores the step keeps busy (a request for cluster schedulers).
         gpu: the step can use a GPU when one is there.
     """
@@ -93,9 +95,10 @@ def execute_step(kind: StepKind, step: Step, key: str, inputs: Mapping[str, Path
             raise LatentDriveError(f"step {step.name}: its input {role} is missing ({path})")
     summary = json_values(kind.run(step.config, inputs, folder))
     peak_mb = peak_rss_mb()
+    resumed = float(summary.pop(RESUMED, 0.0))
     rec = StepRecord(name=step.name, kind=step.kind, key=key, summary=summary,
                      wall_s=round(time.perf_counter() - t0, 2), peak_rss_mb=round(peak_mb, 1),
-                     source=loaded_revision())
+                     source=loaded_revision(), resumed_s=round(resumed, 2))
     records.write(rec)
     return rec
 

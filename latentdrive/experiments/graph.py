@@ -25,9 +25,12 @@ from typing import Any
 from latentdrive.config import ConfigError
 from latentdrive.fileio import MAX_JSON_BYTES, FileFormatError, atomic_write_text, read_json
 
-__all__ = ["DONE", "LATER_SETTINGS", "Graph", "Step", "StepRecord", "keyed_config"]
+__all__ = ["DONE", "LATER_SETTINGS", "RESUMED", "Graph", "Step", "StepRecord", "keyed_config"]
 
 DONE = "done.json"
+#: The summary key in which a resumable step reports the seconds that earlier, interrupted
+#: attempts spent on the work it resumed from; the record keeps it beside ``wall_s``.
+RESUMED = "resumed_s"
 STEPS_DIR = "steps"
 _SAFE = re.compile(r"[^A-Za-z0-9_.=-]+")
 
@@ -107,10 +110,19 @@ class StepRecord:
     #: The commit the step ran from (:func:`latentdrive.provenance.source_revision`); None
     #: when unknown, and in records written before it was kept.
     source: str | None = None
+    #: Seconds that earlier, interrupted attempts spent on the work this one resumed from
+    #: (``wall_s`` is the finishing attempt's alone); 0 for a step run in one go.
+    resumed_s: float = 0.0
+
+    @property
+    def cost_s(self) -> float:
+        """What the step cost, interrupted attempts included (less work they redid)."""
+        return self.wall_s + self.resumed_s
 
     def as_dict(self) -> dict[str, Any]:
         return {"name": self.name, "kind": self.kind, "key": self.key, "wall_s": self.wall_s,
-                "peak_rss_mb": self.peak_rss_mb, "source": self.source, "summary": self.summary}
+                "resumed_s": self.resumed_s, "peak_rss_mb": self.peak_rss_mb, "source": self.source,
+                "summary": self.summary}
 
 
 class Graph:
@@ -179,11 +191,13 @@ class Graph:
             data = read_json(path, limit=MAX_JSON_BYTES, what="step record", error=FileFormatError)
             rec = StepRecord(name=data["name"], kind=data["kind"], key=data["key"], summary=dict(data["summary"]),
                              wall_s=float(data["wall_s"]), peak_rss_mb=float(data["peak_rss_mb"]),
-                             source=None if data.get("source") is None else str(data["source"]))
+                             source=None if data.get("source") is None else str(data["source"]),
+                             resumed_s=float(data.get(RESUMED, 0.0)))
         except (KeyError, TypeError, ValueError) as exc:
             raise ConfigError(f"{path}: not a step record ({type(exc).__name__}: {exc})") from None
-        if not all(math.isfinite(v) and v >= 0 for v in (rec.wall_s, rec.peak_rss_mb)):
-            raise ConfigError(f"{path}: not a step record (wall_s {rec.wall_s}, peak_rss_mb {rec.peak_rss_mb})")
+        if not all(math.isfinite(v) and v >= 0 for v in (rec.wall_s, rec.peak_rss_mb, rec.resumed_s)):
+            raise ConfigError(f"{path}: not a step record (wall_s {rec.wall_s}, resumed_s {rec.resumed_s}, "
+                              f"peak_rss_mb {rec.peak_rss_mb})")
         if rec.key != self.keys[name] or rec.name != name:
             raise ConfigError(f"{path}: records step {rec.name!r} with key {rec.key}, not {name!r} with key {self.keys[name]}")
         return rec

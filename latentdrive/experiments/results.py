@@ -253,7 +253,8 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
             cross[rep] = per
         res["cross_backend"] = cross
 
-    res["steps"] = {n: {"kind": r.kind, "wall_s": r.wall_s, "peak_rss_mb": r.peak_rss_mb, "source": r.source}
+    res["steps"] = {n: {"kind": r.kind, "wall_s": r.wall_s, "resumed_s": r.resumed_s, "peak_rss_mb": r.peak_rss_mb,
+                        "source": r.source}
                     for n, r in records.items()}
     clean: dict[str, Any] = json_values(res)
     return clean

@@ -33,6 +33,7 @@ from latentdrive.evaluate.probes import ProbeConfig, run_probes
 from latentdrive.evaluate.report import policy_report
 from latentdrive.experiments.bnn import BNNStudyConfig, report_bnn_runs, train_on_dataset
 from latentdrive.experiments.executor import StepKind
+from latentdrive.experiments.graph import RESUMED
 from latentdrive.experiments.policy import EvaluationSet, policy_makers
 from latentdrive.fileio import atomic_write_text
 from latentdrive.outcome import outcomes_to_json
@@ -95,7 +96,7 @@ def run_policy(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Pa
     for f in run.iterdir():
         if REPLAY_PATTERN.fullmatch(f.name):
             f.unlink()
-    return {"transitions": int(result.get("transitions", 0))}
+    return {"transitions": int(result.get("transitions", 0)), RESUMED: float(result.get("resumed_s", 0.0))}
 
 
 def run_evaluate(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:

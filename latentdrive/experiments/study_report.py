@@ -268,14 +268,20 @@ def write_report(res: dict[str, Any], out: Path) -> str:
            f"{_num(bnn.get('raw_mean_between_scenario_distance'))}."]
 
     steps = res["steps"]
-    total = sum(s["wall_s"] for s in steps.values())
+    # A step resumed after an interruption costs its finishing attempt plus what the
+    # earlier ones did that it kept.
+    cost = {n: s["wall_s"] + s.get("resumed_s", 0.0) for n, s in steps.items()}
+    total = sum(cost.values())
+    resumed = [s["resumed_s"] for s in steps.values() if s.get("resumed_s")]
     by_kind: dict[str, list[float]] = {}
-    for s in steps.values():
-        by_kind.setdefault(s["kind"], []).append(s["wall_s"])
+    for n, s in steps.items():
+        by_kind.setdefault(s["kind"], []).append(cost[n])
     env = meta["environment"]
     md += ["", "## Cost, hardware, versions", "",
            f"- Last run: {meta['last_run'].get('wall_s', '–')} s wall with {meta['last_run'].get('workers', '–')} "
-           f"worker(s); {total:.0f} s of step time in all (finished steps of earlier runs included).",
+           f"worker(s); {total:.0f} s of step time in all (finished steps of earlier runs included"
+           + (f"; {len(resumed)} step(s) resumed after an interruption, with the {sum(resumed):.0f} s their "
+              "earlier attempts spent on the work they kept)." if resumed else ")."),
            *_provenance(meta["last_run"].get("command"), steps),
            f"- Peak memory of a step: {max(s['peak_rss_mb'] for s in steps.values()):.0f} MB.",
            f"- Machine: {env['machine']}, {env['cpus']} CPUs, GPU: {env['gpu'] or 'none'}; latentdrive "

@@ -241,5 +241,8 @@ def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, ve
     bar.close()
     kept = ({"kept": {"transitions": learner.best_transitions, "failure_rate": learner.best_failure}}
             if learner.best is not None else {})
+    # resumed_s: the training seconds of the sessions this one resumed from, so that a run
+    # cut off and resumed reports what it cost (less what the cut-off session redid).
     return TrainResult(transitions=learner.transitions, updates=learner.updates, episodes=learner.episodes,
-                       evaluation=last_eval, parameters=net.parameter_count(), **kept)
+                       evaluation=last_eval, parameters=net.parameter_count(), resumed_s=round(elapsed_before, 2),
+                       **kept)

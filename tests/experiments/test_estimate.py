@@ -37,6 +37,10 @@ def test_rates_are_seconds_per_unit_of_each_class() -> None:
     recs = {n: StepRecord(name=n, kind="evaluate", key=g.keys[n], summary={}, wall_s=w, peak_rss_mb=1.0)
             for n, w in (("a", 5.0), ("b", 15.0))}
     assert measured_rates(g, recs) == {"evaluate:fast:policy": pytest.approx(0.5)}
+    # A step resumed after an interruption costs its earlier attempts' seconds too.
+    recs["b"] = StepRecord(name="b", kind="evaluate", key=g.keys["b"], summary={}, wall_s=5.0, peak_rss_mb=1.0,
+                           resumed_s=10.0)
+    assert measured_rates(g, recs) == {"evaluate:fast:policy": pytest.approx(0.5)}
 
 
 def test_a_speedup_divides_its_classes_time(tiny_study: Path) -> None:

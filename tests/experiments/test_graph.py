@@ -134,6 +134,26 @@ def test_a_foreign_record_is_a_one_line_error(tmp_path: Path) -> None:
         path.write_text(json.dumps({**data, "wall_s": bad}))
         with pytest.raises(ConfigError, match=r"not a step record \(wall_s"):
             g.record(tmp_path, "alone")
+        path.write_text(json.dumps({**data, "resumed_s": bad}))
+        with pytest.raises(ConfigError, match=r"not a step record \(wall_s .*resumed_s"):
+            g.record(tmp_path, "alone")
+    # A record written before resumed_s was kept reads as a step run in one go.
+    path.write_text(json.dumps({k: v for k, v in data.items() if k != "resumed_s"}))
+    rec = g.record(tmp_path, "alone")
+    assert rec is not None and rec.resumed_s == 0 and rec.cost_s == rec.wall_s
+
+
+def _resumed(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:
+    """A toy step that reports the seconds an earlier attempt spent."""
+    return {"value": 1, "resumed_s": 12.5}
+
+
+def test_a_resumed_steps_earlier_attempts_count_in_its_cost(tmp_path: Path) -> None:
+    g = Graph([Step("s", "resumed", {})])
+    run_local(g, tmp_path, {"resumed": StepKind(_resumed, resumable=True)}, workers=1, preload=PRELOAD, progress=False)
+    rec = g.record(tmp_path, "s")
+    assert rec is not None and rec.resumed_s == 12.5 and rec.summary == {"value": 1}
+    assert rec.cost_s == pytest.approx(rec.wall_s + 12.5)
 
 
 def test_a_worker_killed_mid_step_fails_its_step_only(tmp_path: Path) -> None:

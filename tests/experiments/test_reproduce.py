@@ -259,3 +259,25 @@ def test_the_report_names_the_command_and_the_commits_the_steps_ran_from(tiny_st
     write_report(res, tmp_path)
     code = next(line for line in (tmp_path / "report.md").read_text().splitlines() if line.startswith("- Code:"))
     assert code.startswith(f"- Code: {len(names) - 1} steps ran from commit `aaaaaaaaaaaa`; 1 steps' commit unknown")
+
+
+def test_the_reports_cost_counts_what_interrupted_attempts_did(tiny_study: Path, tmp_path: Path) -> None:
+    from latentdrive.experiments.study_report import write_report
+
+    res = json.loads((tiny_study / "results.json").read_text())
+    assert all(s["resumed_s"] == 0 for s in res["steps"].values())  # the fixture ran in one go
+    write_report(res, tmp_path)
+    before = next(line for line in (tmp_path / "report.md").read_text().splitlines() if line.startswith("- Last run:"))
+    assert "resumed" not in before
+    total = sum(s["wall_s"] for s in res["steps"].values())
+    assert f"{total:.0f} s of step time in all" in before
+    name = next(n for n, s in res["steps"].items() if s["kind"] == "policy")
+    res["steps"][name]["resumed_s"] = 1000.0
+    write_report(res, tmp_path)
+    lines = (tmp_path / "report.md").read_text().splitlines()
+    after = next(line for line in lines if line.startswith("- Last run:"))
+    assert f"{total + 1000:.0f} s of step time in all" in after
+    assert "1 step(s) resumed after an interruption, with the 1000 s their earlier attempts spent" in after
+    table = lines.index(next(line for line in lines if line.startswith("| step kind |")))
+    policy_row = next(line for line in lines[table:] if line.startswith("| policy |"))
+    assert float(policy_row.split("|")[3]) >= 1000

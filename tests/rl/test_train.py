@@ -1,5 +1,6 @@
 """Training runs: frozen encoders, determinism, bitwise resumption, evaluation seeds."""
 
+import csv
 import signal
 import subprocess
 import sys
@@ -53,7 +54,7 @@ def test_same_config_and_seed_give_the_same_weights_and_evaluation(tmp_path, tin
 
 def test_a_killed_run_resumes_to_the_weights_of_an_uninterrupted_one(tmp_path, tiny):
     cfg = tiny(mode="latent-random", steps=500)
-    train_policy(cfg, tmp_path / "whole", **_quiet())
+    assert train_policy(cfg, tmp_path / "whole", **_quiet())["resumed_s"] == 0
     script = textwrap.dedent(f"""
         import json, sys
         from latentdrive.rl.config import PolicyTrainConfig
@@ -73,7 +74,10 @@ def test_a_killed_run_resumes_to_the_weights_of_an_uninterrupted_one(tmp_path, t
 
     done = read_checkpoint(run / CHECKPOINT)[1]["extra"]["transitions"]
     assert done < cfg.steps
-    train_policy(cfg, run, resume=True, **_quiet())
+    logged = {int(r["transitions"]): float(r["elapsed_s"]) for r in csv.DictReader(open(run / "metrics.csv"))}
+    result = train_policy(cfg, run, resume=True, **_quiet())
+    # What the killed session had done by its checkpoint is part of the run's cost.
+    assert result["resumed_s"] == round(logged[done], 2) > 0
     whole, resumed = _model_tensors(tmp_path / "whole"), _model_tensors(run)
     assert all(np.array_equal(whole[k], resumed[k]) for k in whole)
     lines = (run / "metrics.csv").read_text().splitlines()
