@@ -19,7 +19,7 @@ Ray is an optional dependency (``pip install latentdrive[ray]``); only this modu
 from __future__ import annotations
 
 import socket
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -80,7 +80,8 @@ def check_ray_address(address: str) -> None:
 
 def run_ray(graph: Graph, out: Path, kinds: Mapping[str, StepKind], address: str, *, retries: int = 2,
             gpu_fraction: float = 1.0, progress: bool = True, local_cpus: int | None = None,
-            runtime_env: dict[str, Any] | None = None) -> dict[str, StepRecord]:
+            runtime_env: dict[str, Any] | None = None,
+            on_done: Callable[[StepRecord], None] | None = None) -> dict[str, StepRecord]:
     """Run every unfinished step of ``graph`` on the Ray cluster at ``address``.
 
     ``address`` is what ``ray.init`` takes (``auto`` finds the cluster this machine
@@ -88,7 +89,8 @@ def run_ray(graph: Graph, out: Path, kinds: Mapping[str, StepKind], address: str
     ``local`` to start a private single-machine instance with ``local_cpus`` CPUs (all
     by default). ``gpu_fraction`` is the share
     of a GPU a training step asks for (several small policies fit on one GPU);
-    ``runtime_env`` is passed to ``ray.init`` (e.g. environment variables for the workers).
+    ``runtime_env`` is passed to ``ray.init`` (e.g. environment variables for the workers);
+    ``on_done`` is called with each step's record as it finishes.
     """
     try:
         import ray
@@ -108,7 +110,7 @@ def run_ray(graph: Graph, out: Path, kinds: Mapping[str, StepKind], address: str
         except ConnectionError as exc:
             raise LatentDriveError(f"--ray {address}: no Ray cluster there ({str(exc).splitlines()[0]})") from None
     try:
-        return run_graph(graph, out, kinds, _RayRunner(ray, retries, gpu_fraction), progress=progress)
+        return run_graph(graph, out, kinds, _RayRunner(ray, retries, gpu_fraction), progress=progress, on_done=on_done)
     finally:
         if started:
             ray.shutdown()

@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import math
 import platform
-import time
 from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ from latentdrive.experiments.graph import Graph, StepRecord
 from latentdrive.experiments.results import gather_results
 from latentdrive.experiments.study import SAMPLES_PER_EPISODE, ReproduceConfig, build_graph
 from latentdrive.experiments.study_report import write_report
+from latentdrive.experiments.study_runs import StudyRuns, read_runs
 from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_text, read_json
 from latentdrive.runlock import dir_lock
 from latentdrive.runtime import usable_cpus
@@ -96,17 +96,18 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
         record = {"preset": preset, "config": cfg.model_dump(mode="json"),
                   "specs": {n: s.model_dump(mode="json") for n, s in graph_specs.items()}}
         atomic_write_text(out / STUDY, json.dumps(record, indent=1) + "\n")
-        t0 = time.perf_counter()
+        run_workers = f"ray {ray}" if ray else workers
+        runs = StudyRuns(out, command, run_workers, len(graph.order) - len(pending), say)
         if ray:
             from latentdrive.experiments.ray_executor import run_ray
 
             run_ray(graph, out.resolve(), STEP_KINDS, ray, gpu_fraction=gpu_fraction, progress=progress,
-                    local_cpus=workers if ray == "local" else None)
+                    local_cpus=workers if ray == "local" else None, on_done=runs.step_done)
         else:
-            run_local(graph, out, STEP_KINDS, workers=workers, preload=PRELOAD, progress=progress)
-        wall = time.perf_counter() - t0
-        return _report(cfg, graph, out, preset, {"workers": f"ray {ray}" if ray else workers, "wall_s": round(wall, 1),
-                                                 "command": command}, say)
+            run_local(graph, out, STEP_KINDS, workers=workers, preload=PRELOAD, progress=progress,
+                      on_done=runs.step_done)
+        wall = runs.end()
+        return _report(cfg, graph, out, preset, {"workers": run_workers, "wall_s": wall, "command": command}, say)
 
 
 def _report(cfg: ReproduceConfig, graph: Graph, out: Path, preset: str, run: dict[str, Any],
@@ -119,7 +120,7 @@ def _report(cfg: ReproduceConfig, graph: Graph, out: Path, preset: str, run: dic
         records[n] = rec
     results = gather_results(cfg, graph, out, records)
     results["meta"] = {"preset": preset, "environment": _environment(), "last_run": run,
-                       "config": cfg.model_dump(mode="json")}
+                       "runs": read_runs(out), "config": cfg.model_dump(mode="json")}
     atomic_write_text(out / "results.json", json.dumps(results, indent=1, allow_nan=False) + "\n")
     summary = write_report(results, out)
     say(summary)
@@ -164,7 +165,11 @@ def rebuild_report(out: str | Path, say: Callable[[str], None] = print) -> dict[
         meta = old.get("meta") if isinstance(old, dict) else None
         previous = meta.get("last_run", {}) if isinstance(meta, dict) else {}
     except (FileNotFoundError, ConfigError):
-        pass  # rebuilding is what a missing or damaged results.json needs
+        # Rebuilding is what a missing or damaged results.json needs; the runs log still
+        # knows the last run that ran to its end.
+        ended = [r for r in read_runs(out) or [] if r.get("wall_s") is not None]
+        if ended:
+            previous = {k: ended[-1].get(k) for k in ("workers", "wall_s", "command")}
     return _report(cfg, build_graph(cfg, read_study_specs(out)), out, preset, previous, say)
 
 

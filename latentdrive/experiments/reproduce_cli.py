@@ -8,7 +8,18 @@ from typing import Any
 
 from latentdrive.config import LatentDriveError, parse_override_args, unit_fraction
 
-__all__ = ["add_reproduce_parsers"]
+__all__ = ["add_reproduce_parsers", "reproduce_command"]
+
+
+def reproduce_command(args: argparse.Namespace) -> str:
+    """The command as the report shows it: what a reader runs to get the same study
+    (progress settings left out; the GPU share where it applies and is not the default)."""
+    share = args.ray and args.gpu_fraction != 1.0
+    return shlex.join(["latentdrive", "reproduce", str(args.out), "--preset", args.preset,
+                       *(["--seeds", str(args.seeds)] if args.seeds is not None else []),
+                       *[a for o in args.overrides for a in ("--set", o)], "--workers", str(args.workers),
+                       *(["--ray", args.ray] if args.ray else []),
+                       *(["--gpu-fraction", f"{args.gpu_fraction:g}"] if share else [])])
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:
@@ -19,13 +30,8 @@ def _cmd_reproduce(args: argparse.Namespace) -> int:
     if args.seeds is not None:
         overrides["seeds"] = args.seeds
     cfg = load_reproduce_config(args.preset, overrides)
-    # The command as the report shows it: what a reader runs to get the same study.
-    command = shlex.join(["latentdrive", "reproduce", str(args.out), "--preset", args.preset,
-                          *(["--seeds", str(args.seeds)] if args.seeds is not None else []),
-                          *[a for o in args.overrides for a in ("--set", o)], "--workers", str(args.workers),
-                          *(["--ray", args.ray] if args.ray else [])])
     run_study(cfg, args.out, workers=args.workers, preset=args.preset, progress=not args.quiet, ray=args.ray,
-              gpu_fraction=args.gpu_fraction, command=command)
+              gpu_fraction=args.gpu_fraction, command=reproduce_command(args))
     print(f"report: {args.out}/report.md")
     return 0
 

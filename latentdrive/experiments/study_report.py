@@ -11,6 +11,7 @@ import yaml
 
 from latentdrive.config import dotted_items
 from latentdrive.experiments.study_figures import write_study_figures
+from latentdrive.experiments.study_runs import runs_summary
 from latentdrive.fileio import atomic_write_text
 
 __all__ = ["WEAK_BNN_RECALL", "summary_table", "write_report"]
@@ -282,6 +283,7 @@ def write_report(res: dict[str, Any], out: Path) -> str:
            f"worker(s); {total:.0f} s of step time in all (finished steps of earlier runs included"
            + (f"; {len(resumed)} step(s) resumed after an interruption, with the {sum(resumed):.0f} s their "
               "earlier attempts spent on the work they kept)." if resumed else ")."),
+           *([line] if (line := runs_summary(meta.get("runs"))) else []),
            *_provenance(meta["last_run"].get("command"), steps),
            f"- Peak memory of a step: {max(s['peak_rss_mb'] for s in steps.values()):.0f} MB.",
            f"- Machine: {env['machine']}, {env['cpus']} CPUs, GPU: {env['gpu'] or 'none'}; latentdrive "

@@ -125,6 +125,17 @@ def test_a_killed_study_loses_only_the_steps_in_progress(tiny_study: Path, tmp_p
     assert main(["reproduce", str(out), "--preset", "tiny", "--workers", "2", "-q"]) == 0
     assert all((graph.folder(out, n) / "done.json").stat().st_mtime_ns == t for n, t in finished.items())
     assert _numbers(out) == before
+    # The runs log keeps the killed run, whose end was never written, beside the one that finished.
+    runs = json.loads((out / "runs.json").read_text())
+    killed, rerun = runs[-2:]
+    assert killed["wall_s"] is None and killed["command"].startswith("latentdrive reproduce")
+    assert rerun["wall_s"] is not None and rerun["finished_before"] == len(finished)
+    report = (out / "report.md").read_text()
+    assert f"- Runs of this folder: {len(runs)}," in report and "1 of them cut off" in report
+    # A damaged results.json loses nothing the report needs: the log knows the last run's command.
+    (out / "results.json").write_text("{")
+    assert main(["report", str(out)]) == 0
+    assert f"- Command of the last run: `{rerun['command']}`." in (out / "report.md").read_text().splitlines()
 
 
 def test_running_another_config_into_a_study_folder_says_so(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
@@ -281,3 +292,22 @@ def test_the_reports_cost_counts_what_interrupted_attempts_did(tiny_study: Path,
     table = lines.index(next(line for line in lines if line.startswith("| step kind |")))
     policy_row = next(line for line in lines[table:] if line.startswith("| policy |"))
     assert float(policy_row.split("|")[3]) >= 1000
+
+
+def test_the_reported_command_holds_what_defines_the_run() -> None:
+    import argparse
+
+    from latentdrive.experiments.reproduce_cli import add_reproduce_parsers, reproduce_command
+
+    parser = argparse.ArgumentParser()
+    add_reproduce_parsers(parser.add_subparsers())
+
+    def command(*argv: str) -> str:
+        return reproduce_command(parser.parse_args(["reproduce", "out dir", *argv]))
+
+    assert command("-q") == "latentdrive reproduce 'out dir' --preset quick --workers 1"
+    assert command("--seeds", "2", "--set", "policy.steps=9", "--workers", "2") == (
+        "latentdrive reproduce 'out dir' --preset quick --seeds 2 --set policy.steps=9 --workers 2")
+    assert command("--ray", "auto", "--gpu-fraction", "0.25").endswith("--ray auto --gpu-fraction 0.25")
+    # Without Ray the share asks for nothing, and at its default it says nothing.
+    assert "--gpu-fraction" not in command("--gpu-fraction", "0.25") + command("--ray", "auto")
