@@ -182,3 +182,6 @@ def test_policy_classes_part_where_the_time_per_transition_does() -> None:
     assert classes["policy/latent/mixed/s0"] == "policy:latent:batch8"
     assert classes["policy/end-to-end/mixed/s0"] == "policy:end-to-end:upt0.25:batch8"
     assert classes["policy/imitation/mixed/s0"] == "policy:raw:dagger:upt0.25:batch8"
+    # A precision set apart from auto's choice is a class of its own.
+    g = build_graph(load_reproduce_config("tiny", {"policy": {"train": {"precision": "fp32"}}}))
+    assert step_size(g.steps["policy/latent/mixed/s0"])[0] == "policy:latent:upt0.25:batch8:fp32"
