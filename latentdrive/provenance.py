@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import hashlib
 import os
 import subprocess
 from pathlib import Path
@@ -13,22 +14,36 @@ __all__ = ["loaded_revision", "source_revision"]
 _CODE = ("latentdrive", "pyproject.toml")
 
 
-def source_revision() -> str | None:
-    """The commit (12 hex digits) of the git checkout this package is imported from, with
-    ``+changes`` when the package's files (tracked or new) or ``pyproject.toml`` differ from
-    it; None outside a checkout (an installed wheel) or where git cannot say.
+def source_revision(root: Path | None = None) -> str | None:
+    """The commit (12 hex digits) of the git checkout this package is imported from (or of
+    ``root``), with ``+changes.<8 hex digits>`` when the package's files (tracked or new)
+    or ``pyproject.toml`` differ from it, the digits a hash of those differences (two runs
+    with the same ones ran the same code); None outside a checkout (an installed wheel) or
+    where git cannot say.
 
     Never raises: a result is not lost to a question about its provenance.
     """
-    root = Path(__file__).resolve().parent.parent
+    root = Path(__file__).resolve().parent.parent if root is None else root
     if not (root / ".git").exists():  # a folder, or a file in a worktree
         return None
     try:
         head = _git(root, "rev-parse", "HEAD").decode("ascii")
-        changed = _git(root, "status", "--porcelain", "--", *_CODE)
+        changed = _git(root, "status", "--porcelain", "-z", "--untracked-files=all", "--", *_CODE)
+        digest = _changes_digest(root, changed) if changed else ""
     except (OSError, subprocess.SubprocessError, ValueError):
         return None
-    return head[:12] + ("+changes" if changed else "")
+    return head[:12] + (f"+changes.{digest}" if changed else "")
+
+
+def _changes_digest(root: Path, status: bytes) -> str:
+    """A hash of how the code differs from its commit: the diff of tracked files, and the
+    names and bytes of new ones."""
+    h = hashlib.sha256(_git(root, "diff", "HEAD", "--binary", "--", *_CODE))
+    for entry in sorted(status.split(b"\0")):
+        if entry.startswith(b"?? "):
+            name = entry[3:]
+            h.update(b"\0" + name + b"\0" + (root / os.fsdecode(name)).read_bytes())
+    return h.hexdigest()[:8]
 
 
 def _git(root: Path, *args: str) -> bytes:

@@ -22,8 +22,40 @@ def test_a_checkout_names_its_commit_and_whether_tracked_files_changed() -> None
     changed = subprocess.run(["git", "-C", str(ROOT), "status", "--porcelain", "--", "latentdrive", "pyproject.toml"],
                              capture_output=True, text=True, check=True).stdout.strip()
     rev = source_revision()
-    assert rev is not None and re.fullmatch(r"[0-9a-f]{12}(\+changes)?", rev)
-    assert rev == head[:12] + ("+changes" if changed else "")
+    assert rev is not None and re.fullmatch(r"[0-9a-f]{12}(\+changes\.[0-9a-f]{8})?", rev)
+    assert rev.startswith(head[:12]) and ("+changes" in rev) == bool(changed)
+
+
+def test_the_changes_are_named_by_a_hash_of_what_they_are(tmp_path: Path) -> None:
+    def git(*args: str) -> None:
+        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                       check=True, capture_output=True)
+
+    git("init", "-q")
+    code = tmp_path / "latentdrive" / "a.py"
+    code.parent.mkdir()
+    code.write_text("x = 1\n")
+    git("add", ".")
+    git("commit", "-qm", "one")
+    clean = source_revision(tmp_path)
+    assert clean is not None and re.fullmatch(r"[0-9a-f]{12}", clean)
+    (tmp_path / "notes.md").write_text("docs do not decide results\n")
+    assert source_revision(tmp_path) == clean
+    seen = set()
+    for edit in ("x = 2\n", "x = 3\n", "x = 2\n"):
+        code.write_text(edit)
+        rev = source_revision(tmp_path)
+        assert rev is not None and rev.startswith(clean + "+changes.")
+        seen.add(rev)
+    assert len(seen) == 2  # the same change, the same name; another change, another
+    code.write_text("x = 1\n")
+    new = tmp_path / "latentdrive" / "b.py"
+    new.write_text("y = 1\n")  # a new file of the package counts, by its bytes
+    one = source_revision(tmp_path)
+    new.write_text("y = 2\n")
+    assert one != source_revision(tmp_path) and "+changes." in str(one)
+    new.unlink()
+    assert source_revision(tmp_path) == clean
 
 
 def test_without_git_the_commit_is_unknown(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -259,10 +259,10 @@ def test_the_report_names_the_command_and_the_commits_the_steps_ran_from(tiny_st
     # Steps from two commits, and records from before commits were kept, are told apart.
     names = sorted(res["steps"])
     for i, name in enumerate(names):
-        res["steps"][name]["source"] = ("aaaaaaaaaaaa", "bbbbbbbbbbbb+changes", None)[i % 3]
+        res["steps"][name]["source"] = ("aaaaaaaaaaaa", "bbbbbbbbbbbb+changes.0123abcd", None)[i % 3]
     write_report(res, tmp_path)
     code = next(line for line in (tmp_path / "report.md").read_text().splitlines() if line.startswith("- Code:"))
-    assert "more than one commit" in code and "`aaaaaaaaaaaa`" in code and "`bbbbbbbbbbbb+changes`" in code
+    assert "more than one commit" in code and "`aaaaaaaaaaaa`" in code and "`bbbbbbbbbbbb+changes.0123abcd`" in code
     assert f"; {len(names) // 3} steps' commit unknown" in code
     # One commit beside records from before commits were kept: not "more than one commit".
     for i, name in enumerate(names):
