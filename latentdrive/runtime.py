@@ -23,7 +23,7 @@ from typing import Literal
 
 import torch
 
-__all__ = ["PRECISIONS", "Precision", "autocast", "bf16_conv_gradients_agree", "check_device", "cpu_bf16_gradients_sound", "cpu_has_bf16",
+__all__ = ["PRECISIONS", "Precision", "autocast", "available_memory", "bf16_conv_gradients_agree", "check_device", "cpu_bf16_gradients_sound", "cpu_has_bf16",
            "onednn", "resolve_device", "resolve_precision", "torch_settings", "usable_cpus"]
 
 Precision = Literal["auto", "fp32", "bf16"]
@@ -169,3 +169,16 @@ def usable_cpus() -> int:
     """CPUs this process may run on (its affinity mask, which a container or ``taskset``
     can narrow below the machine's count)."""
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+
+
+def available_memory() -> int | None:
+    """Bytes of memory the kernel reckons available to new allocations without swapping
+    (``MemAvailable`` of ``/proc/meminfo``); None where it cannot say (not Linux)."""
+    try:
+        with open("/proc/meminfo", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        return None
+    return None

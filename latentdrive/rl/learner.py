@@ -40,7 +40,7 @@ from latentdrive.rl.nstep import NStepEntries, NStepWindow
 from latentdrive.rl.policy import CHECKPOINT, FeatureCache, build_network, read_run_config
 from latentdrive.rl.replay import FrameStore, LatentStore, ObservationStore, Replay
 from latentdrive.rollout import StepRecord
-from latentdrive.runtime import resolve_precision
+from latentdrive.runtime import available_memory, resolve_precision
 
 __all__ = ["REPLAY_PATTERN", "Learner", "make_store", "restore_with_targets"]
 
@@ -60,6 +60,17 @@ def make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> Observati
         return LatentStore(2 * cap + 4 * n_slots + late, net.stored_shape)
     t = cfg.observation.frames
     return FrameStore(2 * cap + (2 * t + 1) * n_slots + late, cfg.observation.shape)
+
+
+def _check_replay_fits(replay: Replay, transitions: int) -> None:
+    """Refuse, before training starts, a replay that would outgrow the memory available
+    (its arrays are reserved whole and fill as it runs: without this a run fails hours
+    in, or drives the machine into swap)."""
+    need, have = replay.nbytes_at(transitions), available_memory()
+    if have is not None and need > have:
+        raise ConfigError(f"the replay would take {need / 2**30:.1f} GiB at {transitions:,} transitions "
+                          f"(dqn.buffer_size {replay.capacity:,}) and {have / 2**30:.1f} GiB of memory is available: "
+                          "lower dqn.buffer_size, or the observation's size (vfan.objects_k, observation.frames)")
 
 
 class Learner:
@@ -84,6 +95,7 @@ class Learner:
         d = cfg.dqn
         self.replay = Replay(d.buffer_size, make_store(net, cfg, n_slots), prioritized=d.prioritized,
                              alpha=d.priority_alpha, priority_eps=d.priority_eps)
+        _check_replay_fits(self.replay, min(cfg.steps, d.buffer_size))
         self.window: NStepWindow | None = None  # sized by the first step's agent slots
         self.rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x51]))
         self.transitions = 0

@@ -60,6 +60,8 @@ class Batch(NamedTuple):
 class ObservationStore(Protocol):
     capacity: int
     added: int
+    #: Bytes of the store's arrays when full.
+    nbytes: int
 
     def add(self, obs: NDArray[np.float32], prev: IntArray) -> IntArray: ...
     def get(self, ids: IntArray) -> NDArray[np.float32]: ...
@@ -74,6 +76,7 @@ class LatentStore:
         self.capacity = int(capacity)
         self.added = 0
         self.data = np.zeros((self.capacity, *shape), dtype=np.float32)
+        self.nbytes = self.data.nbytes
 
     def add(self, obs: NDArray[np.float32], prev: IntArray) -> IntArray:
         ids = self.added + np.arange(len(obs), dtype=np.int64)
@@ -114,6 +117,7 @@ class FrameStore:
         self.added = 0
         self.data = np.zeros((self.capacity, c, h, w), dtype=np.uint8)
         self.prev = np.full(self.capacity, -1, dtype=np.int64)
+        self.nbytes = self.data.nbytes + self.prev.nbytes
 
     def add(self, obs: NDArray[np.float32], prev: IntArray) -> IntArray:
         ids = self.added + np.arange(len(obs), dtype=np.int64)
@@ -196,6 +200,14 @@ class Replay:
 
     def __len__(self) -> int:
         return min(self.added, self.capacity)
+
+    def nbytes_at(self, transitions: int) -> int:
+        """Bytes the replay and its observation store occupy once they hold ``transitions``
+        (their arrays are reserved whole but take memory as they fill; the store holds about
+        two observations per transition)."""
+        share = min(1.0, transitions / self.capacity)
+        own = sum(getattr(self, name).nbytes for name in self._ARRAYS)
+        return int(share * (own + self.store.nbytes))
 
     def add(self, obs_id: IntArray, action: IntArray, reward: NDArray[np.floating], next_id: IntArray,
             terminated: NDArray[np.bool_], steps: IntArray | None = None) -> None:

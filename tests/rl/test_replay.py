@@ -298,3 +298,32 @@ def test_n_step_entries_never_refer_to_evicted_observations(mode, reader):
     assert r.added > 3 * r.capacity and set(np.unique(r.steps)) == set(range(1, 7))
     r.store.get(r.obs_id)
     r.store.get(r.next_id)
+
+
+def test_the_replays_memory_grows_with_what_it_holds():
+    replay = Replay(1000, FrameStore(2000, (4, 4, 16, 32)))
+    full = replay.nbytes_at(1000)
+    # Six per-transition arrays, and per stored frame 4×16×32 uint8 cells plus its link.
+    assert full == 1000 * (8 + 8 + 8 + 4 + 1 + 8) + 2000 * (4 * 16 * 32 + 8)
+    assert replay.nbytes_at(500) == full // 2 and replay.nbytes_at(10**6) == full
+    features = Replay(100, LatentStore(200, (3, 16)))
+    assert features.nbytes_at(100) == 100 * 37 + 200 * 3 * 16 * 4
+
+
+def test_a_replay_larger_than_the_memory_available_is_refused_before_training(tmp_path, monkeypatch):
+    import latentdrive.rl.learner as learner_module
+    from latentdrive.config import ConfigError
+    from latentdrive.rl.train import train_policy
+
+    from .conftest import TINY
+
+    monkeypatch.setattr(learner_module, "available_memory", lambda: 2**20)
+    cfg = PolicyTrainConfig.model_validate({**TINY, "mode": "raw"})
+    with pytest.raises(ConfigError) as info:
+        train_policy(cfg, tmp_path / "run", progress=False, say=lambda _l: None)
+    msg = str(info.value)
+    assert "\n" not in msg and "GiB of memory is available" in msg and "dqn.buffer_size" in msg
+    from latentdrive.runlock import LOCK_NAME
+
+    # Nothing written but the folder and its lock.
+    assert [p.name for p in (tmp_path / "run").iterdir()] == [LOCK_NAME]
