@@ -17,9 +17,9 @@ _CODE = ("latentdrive", "pyproject.toml")
 def source_revision(root: Path | None = None) -> str | None:
     """The commit (12 hex digits) of the git checkout this package is imported from (or of
     ``root``), with ``+changes.<8 hex digits>`` when the package's files (tracked or new)
-    or ``pyproject.toml`` differ from it, the digits a hash of those differences (two runs
-    with the same ones ran the same code); None outside a checkout (an installed wheel) or
-    where git cannot say.
+    or ``pyproject.toml`` differ from it, the digits a hash of what those files now hold
+    (two runs with the same digits ran the same code); None outside a checkout (an
+    installed wheel) or where git cannot say.
 
     Never raises: a result is not lost to a question about its provenance.
     """
@@ -27,23 +27,47 @@ def source_revision(root: Path | None = None) -> str | None:
     if not (root / ".git").exists():  # a folder, or a file in a worktree
         return None
     try:
-        head = _git(root, "rev-parse", "HEAD").decode("ascii")
+        head = _git(root, "rev-parse", "HEAD").strip().decode("ascii")
         changed = _git(root, "status", "--porcelain", "-z", "--untracked-files=all", "--", *_CODE)
-        digest = _changes_digest(root, changed) if changed else ""
     except (OSError, subprocess.SubprocessError, ValueError):
         return None
-    return head[:12] + (f"+changes.{digest}" if changed else "")
+    return head[:12] + (f"+changes.{_changes_digest(root, changed)}" if changed.strip(b"\0") else "")
 
 
 def _changes_digest(root: Path, status: bytes) -> str:
-    """A hash of how the code differs from its commit: the diff of tracked files, and the
-    names and bytes of new ones."""
-    h = hashlib.sha256(_git(root, "diff", "HEAD", "--binary", "--", *_CODE))
-    for entry in sorted(status.split(b"\0")):
-        if entry.startswith(b"?? "):
-            name = entry[3:]
-            h.update(b"\0" + name + b"\0" + (root / os.fsdecode(name)).read_bytes())
+    """A hash of what every path ``git status -z`` lists holds in the working tree: the
+    commit plus these determine the code. Only the files' names and contents count, not
+    the index or the user's diff settings, so one tree has one name on every machine."""
+    fields = status.split(b"\0")
+    paths: set[bytes] = set()
+    i = 0
+    while i < len(fields):
+        entry = fields[i]
+        i += 1
+        if len(entry) < 4:
+            continue
+        paths.add(entry[3:])
+        if entry[:1] in (b"R", b"C"):  # a rename or copy in the index: its origin follows
+            paths.add(fields[i])
+            i += 1
+    h = hashlib.sha256()
+    for name in sorted(paths):
+        h.update(name + b"\0" + _state(root / os.fsdecode(name)) + b"\0")
     return h.hexdigest()[:8]
+
+
+def _state(path: Path) -> bytes:
+    """What ``path`` holds: a file's bytes, a link's target, or what it is otherwise."""
+    try:
+        if path.is_symlink():
+            return b"link:" + os.fsencode(os.readlink(path))
+        if path.is_dir():
+            return b"folder"
+        if not path.exists():
+            return b"deleted"
+        return b"file:" + hashlib.sha256(path.read_bytes()).digest()
+    except OSError:
+        return b"unreadable"
 
 
 def _git(root: Path, *args: str) -> bytes:
@@ -52,7 +76,7 @@ def _git(root: Path, *args: str) -> bytes:
     refused meanwhile."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}
     return subprocess.run(["git", "--no-optional-locks", "-C", str(root), *args], capture_output=True, timeout=5,
-                          check=True, env=env).stdout.strip()
+                          check=True, env=env).stdout
 
 
 @functools.cache

@@ -19,6 +19,7 @@ import os
 import warnings
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
+from pathlib import Path
 from typing import Literal
 
 import torch
@@ -172,13 +173,38 @@ def usable_cpus() -> int:
 
 
 def available_memory() -> int | None:
-    """Bytes of memory the kernel reckons available to new allocations without swapping
-    (``MemAvailable`` of ``/proc/meminfo``); None where it cannot say (not Linux)."""
+    """Bytes of memory available to new allocations without swapping: the kernel's
+    ``MemAvailable``, or less where this process's cgroup (a container, a Slurm job) caps
+    it; None where neither can be read (not Linux)."""
+    have = None
     try:
         with open("/proc/meminfo", encoding="ascii") as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
+                    have = int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
-        return None
-    return None
+        pass
+    for cap_file, used_file in _cgroup_memory_files():
+        try:
+            cap = cap_file.read_text().strip()
+            if cap != "max" and int(cap) < 2**60:  # v1 writes "no limit" as a huge number
+                left = int(cap) - int(used_file.read_text())
+                have = left if have is None else min(have, left)
+        except (OSError, ValueError):
+            pass
+    return have
+
+
+def _cgroup_memory_files() -> list[tuple[Path, Path]]:
+    """(limit, usage) files of this process's memory cgroup: v2's group named in
+    ``/proc/self/cgroup``, and v1's controller as a container sees it."""
+    files = [(Path("/sys/fs/cgroup/memory/memory.limit_in_bytes"), Path("/sys/fs/cgroup/memory/memory.usage_in_bytes"))]
+    try:
+        lines = Path("/proc/self/cgroup").read_text().splitlines()
+    except OSError:
+        return files
+    for line in lines:
+        if line.startswith("0::"):
+            folder = Path("/sys/fs/cgroup") / line[3:].strip().lstrip("/")
+            files.append((folder / "memory.max", folder / "memory.current"))
+    return files

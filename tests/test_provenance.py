@@ -56,6 +56,42 @@ def test_the_changes_are_named_by_a_hash_of_what_they_are(tmp_path: Path) -> Non
     assert one != source_revision(tmp_path) and "+changes." in str(one)
     new.unlink()
     assert source_revision(tmp_path) == clean
+    # The name is the tree's, not the index's: the same edit staged or not reads alike.
+    code.write_text("x = 2\n")
+    unstaged = source_revision(tmp_path)
+    git("add", "latentdrive/a.py")
+    assert source_revision(tmp_path) == unstaged
+    git("reset", "-q")
+    # A deleted file, a staged rename and odd names are changes too, each its own.
+    code.write_text("x = 1\n")
+    code.unlink()
+    deleted = source_revision(tmp_path)
+    git("checkout", "--", "latentdrive/a.py")
+    git("mv", "latentdrive/a.py", "latentdrive/b c.py")
+    renamed = source_revision(tmp_path)
+    assert len({deleted, renamed, clean}) == 3 and "+changes." in str(deleted) and "+changes." in str(renamed)
+    git("mv", "latentdrive/b c.py", "latentdrive/a.py")
+    assert source_revision(tmp_path) == clean
+
+
+def test_what_git_lists_but_cannot_be_read_still_names_the_commit(tmp_path: Path) -> None:
+    def git(*args: str) -> None:
+        subprocess.run(["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", *args],
+                       check=True, capture_output=True)
+
+    git("init", "-q")
+    (tmp_path / "latentdrive").mkdir()
+    (tmp_path / "latentdrive" / "a.py").write_text("x = 1\n")
+    git("add", ".")
+    git("commit", "-qm", "one")
+    clean = source_revision(tmp_path)
+    assert clean is not None
+    (tmp_path / "latentdrive" / "gone.py").symlink_to(tmp_path / "nowhere")  # a broken link
+    nested = tmp_path / "latentdrive" / "vendored"  # another repository inside: git lists the folder
+    nested.mkdir()
+    subprocess.run(["git", "-C", str(nested), "init", "-q"], check=True)
+    rev = source_revision(tmp_path)
+    assert rev is not None and re.fullmatch(re.escape(clean) + r"\+changes\.[0-9a-f]{8}", rev)
 
 
 def test_without_git_the_commit_is_unknown(monkeypatch: pytest.MonkeyPatch) -> None:

@@ -98,15 +98,22 @@ def run_study(cfg: ReproduceConfig, out: str | Path, *, workers: int = 1, preset
         atomic_write_text(out / STUDY, json.dumps(record, indent=1) + "\n")
         run_workers = f"ray {ray}" if ray else workers
         runs = StudyRuns(out, command, run_workers, len(graph.order) - len(pending), say)
-        if ray:
-            from latentdrive.experiments.ray_executor import run_ray
+        how = "failed"
+        try:
+            if ray:
+                from latentdrive.experiments.ray_executor import run_ray
 
-            run_ray(graph, out.resolve(), STEP_KINDS, ray, gpu_fraction=gpu_fraction, progress=progress,
-                    local_cpus=workers if ray == "local" else None, on_done=runs.step_done)
-        else:
-            run_local(graph, out, STEP_KINDS, workers=workers, preload=PRELOAD, progress=progress,
-                      on_done=runs.step_done)
-        wall = runs.end()
+                run_ray(graph, out.resolve(), STEP_KINDS, ray, gpu_fraction=gpu_fraction, progress=progress,
+                        local_cpus=workers if ray == "local" else None, on_done=runs.step_done)
+            else:
+                run_local(graph, out, STEP_KINDS, workers=workers, preload=PRELOAD, progress=progress,
+                          on_done=runs.step_done)
+            how = "finished"
+        except KeyboardInterrupt:
+            how = "interrupted"
+            raise
+        finally:
+            wall = runs.end(how)
         return _report(cfg, graph, out, preset, {"workers": run_workers, "wall_s": wall, "command": command}, say)
 
 
@@ -167,7 +174,7 @@ def rebuild_report(out: str | Path, say: Callable[[str], None] = print) -> dict[
     except (FileNotFoundError, ConfigError):
         # Rebuilding is what a missing or damaged results.json needs; the runs log still
         # knows the last run that ran to its end.
-        ended = [r for r in read_runs(out) or [] if r.get("wall_s") is not None]
+        ended = [r for r in read_runs(out) or [] if r.get("ended") == "finished"]
         if ended:
             previous = {k: ended[-1].get(k) for k in ("workers", "wall_s", "command")}
     return _report(cfg, build_graph(cfg, read_study_specs(out)), out, preset, previous, say)

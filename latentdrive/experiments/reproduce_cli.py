@@ -19,7 +19,7 @@ def reproduce_command(args: argparse.Namespace) -> str:
                        *(["--seeds", str(args.seeds)] if args.seeds is not None else []),
                        *[a for o in args.overrides for a in ("--set", o)], "--workers", str(args.workers),
                        *(["--ray", args.ray] if args.ray else []),
-                       *(["--gpu-fraction", f"{args.gpu_fraction:g}"] if share else [])])
+                       *(["--gpu-fraction", str(args.gpu_fraction)] if share else [])])
 
 
 def _cmd_reproduce(args: argparse.Namespace) -> int:

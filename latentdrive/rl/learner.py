@@ -62,17 +62,6 @@ def make_store(net: QNetwork, cfg: PolicyTrainConfig, n_slots: int) -> Observati
     return FrameStore(2 * cap + (2 * t + 1) * n_slots + late, cfg.observation.shape)
 
 
-def _check_replay_fits(replay: Replay, transitions: int) -> None:
-    """Refuse, before training starts, a replay that would outgrow the memory available
-    (its arrays are reserved whole and fill as it runs: without this a run fails hours
-    in, or drives the machine into swap)."""
-    need, have = replay.nbytes_at(transitions), available_memory()
-    if have is not None and need > have:
-        raise ConfigError(f"the replay would take {need / 2**30:.1f} GiB at {transitions:,} transitions "
-                          f"(dqn.buffer_size {replay.capacity:,}) and {have / 2**30:.1f} GiB of memory is available: "
-                          "lower dqn.buffer_size, or the observation's size (vfan.objects_k, observation.frames)")
-
-
 class Learner:
     """Replay writing and updates; one instance per run.
 
@@ -95,7 +84,6 @@ class Learner:
         d = cfg.dqn
         self.replay = Replay(d.buffer_size, make_store(net, cfg, n_slots), prioritized=d.prioritized,
                              alpha=d.priority_alpha, priority_eps=d.priority_eps)
-        _check_replay_fits(self.replay, min(cfg.steps, d.buffer_size))
         self.window: NStepWindow | None = None  # sized by the first step's agent slots
         self.rng = np.random.default_rng(np.random.SeedSequence([cfg.seed, 0x51]))
         self.transitions = 0
@@ -301,6 +289,18 @@ class Learner:
             if REPLAY_PATTERN.fullmatch(old.name) and old.name != name:
                 old.unlink(missing_ok=True)
 
+    def check_memory(self) -> None:
+        """Refuse, before training starts or resumes, a replay that would outgrow the memory
+        available once it holds ``min(steps, buffer_size)`` transitions (its arrays are
+        reserved whole and fill as the run goes: without this a run fails hours in, or
+        drives the machine into swap). Runs going at once are not counted together."""
+        need, have = self.replay.nbytes_at(min(self.cfg.steps, self.replay.capacity)), available_memory()
+        if have is not None and need > have:
+            raise ConfigError(f"the replay would take {need / 2**30:.1f} GiB at "
+                              f"{min(self.cfg.steps, self.replay.capacity):,} transitions (dqn.buffer_size "
+                              f"{self.replay.capacity:,}) and {have / 2**30:.1f} GiB of memory is available: lower "
+                              "dqn.buffer_size, or the observation's size (vfan.objects_k, observation.frames)")
+
     def load(self, run_dir: Path) -> int:
         """Restore from the run's checkpoint; returns the next segment index.
 
@@ -332,6 +332,7 @@ class Learner:
             raise CheckpointError(f"{run_dir / CHECKPOINT}: not a policy run's checkpoint (no training counters)") from None
         if self.transitions >= self.cfg.steps:
             return segment + 1
+        self.check_memory()
         # Checkpoints written before replays were named per segment used one fixed name.
         name = info.extra.get("replay", "replay.safetensors")
         path = confined(run_dir, name, source=run_dir / CHECKPOINT, error=CheckpointError)

@@ -207,7 +207,8 @@ class Replay:
         two observations per transition)."""
         share = min(1.0, transitions / self.capacity)
         own = sum(getattr(self, name).nbytes for name in self._ARRAYS)
-        return int(share * (own + self.store.nbytes))
+        tree = self.tree.tree.nbytes if self.tree is not None else 0
+        return int(share * (own + tree + self.store.nbytes))
 
     def add(self, obs_id: IntArray, action: IntArray, reward: NDArray[np.floating], next_id: IntArray,
             terminated: NDArray[np.bool_], steps: IntArray | None = None) -> None:

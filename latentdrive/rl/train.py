@@ -12,6 +12,7 @@ experience per segment and nothing in correctness.
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -68,7 +69,8 @@ EvalCallback = Callable[[int, float], None]
 
 
 class TrainResult(dict[str, Any]):
-    """Final counters and the last evaluation (a plain dict, JSON-serializable)."""
+    """Final counters, the last evaluation and ``resumed_s``, the training seconds of the
+    sessions a resumed run continued from (a plain dict, JSON-serializable)."""
 
 
 
@@ -148,6 +150,8 @@ def train_policy(cfg: PolicyTrainConfig, run_dir: str | Path, *, resume: bool = 
         learner = Learner(cfg, net, device, cfg.envs * vec.n_av, progress=progress)
         # Everything a resumption reads is checked before anything is written.
         logs = read_logs(root) if resume else {}
+        if not resume:
+            learner.check_memory()  # a resumed run checks before it loads its replay
         segment = learner.load(root) if resume else 0
         elapsed_before = _elapsed_before(root, logs.get(METRICS, []), learner.transitions)
         write_config(root, cfg, net, enc)
@@ -171,10 +175,13 @@ def _elapsed_before(root: Path, metrics: list[dict[str, str]], transitions: int)
     kept = [r for r in metrics if int(r["transitions"]) <= transitions]
     text = kept[-1].get("elapsed_s", "") if kept else ""
     try:
-        return float(text) if text else 0.0
+        seconds = float(text) if text else 0.0
     except ValueError:
+        seconds = math.nan
+    if not (math.isfinite(seconds) and seconds >= 0):
         raise ConfigError(f"{root / METRICS}: elapsed_s {text!r} at {kept[-1]['transitions']} "
-                          "agent-transitions is not a number") from None
+                          "agent-transitions is not a number of seconds")
+    return seconds
 
 
 def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, vec: Any, segment: int,

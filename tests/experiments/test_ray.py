@@ -37,6 +37,9 @@ def test_the_tiny_study_through_ray_gives_the_numbers_of_local_workers(tiny_stud
     assert main(["reproduce", str(out), "--preset", "tiny", "--ray", "local", "--workers", "2", "-q"]) == 0
     assert all(graph.record(out, n) is not None for n in redo)
     assert study_numbers(out) == study_numbers(tiny_study)
+    # The run is logged step by step through Ray's executor as through local workers.
+    last = json.loads((out / "runs.json").read_text())[-1]
+    assert last["workers"] == "ray local" and last["steps"] == len(redo) and last["ended"] == "finished"
 
 
 def _slow(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:

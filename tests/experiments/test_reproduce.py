@@ -13,6 +13,7 @@ from helpers import study_numbers as _numbers
 
 from latentdrive.cli import main
 from latentdrive.experiments.study import build_graph, load_reproduce_config
+from latentdrive.experiments.study_runs import read_runs
 
 
 def test_the_tiny_study_reports_every_experiment(tiny_study: Path) -> None:
@@ -114,7 +115,9 @@ def test_a_killed_study_loses_only_the_steps_in_progress(tiny_study: Path, tmp_p
                              "--workers", "2", "-q"], start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 120
-    while not any((graph.folder(out, n) / "done.json").exists() for n in redo):
+    logged = len(read_runs(out) or [])
+    # Killed once a step has finished and the run has logged it (a moment the log must survive).
+    while len(read_runs(out) or []) == logged:
         assert proc.poll() is None and time.monotonic() < deadline
         time.sleep(0.2)
     os.killpg(proc.pid, signal.SIGKILL)  # the whole study, workers included, at an arbitrary moment
@@ -127,11 +130,13 @@ def test_a_killed_study_loses_only_the_steps_in_progress(tiny_study: Path, tmp_p
     assert _numbers(out) == before
     # The runs log keeps the killed run, whose end was never written, beside the one that finished.
     runs = json.loads((out / "runs.json").read_text())
+    assert len(runs) == logged + 2
     killed, rerun = runs[-2:]
-    assert killed["wall_s"] is None and killed["command"].startswith("latentdrive reproduce")
-    assert rerun["wall_s"] is not None and rerun["finished_before"] == len(finished)
+    assert killed["wall_s"] is None and "ended" not in killed and killed["steps"] >= 1
+    assert killed["command"].startswith("latentdrive reproduce")
+    assert rerun["ended"] == "finished" and rerun["finished_before"] == len(finished)
     report = (out / "report.md").read_text()
-    assert f"- Runs of this folder: {len(runs)}," in report and "1 of them cut off" in report
+    assert f"- Runs of this folder: {len(runs)}," in report and "1 of them not to their end (1 cut off" in report
     # A damaged results.json loses nothing the report needs: the log knows the last run's command.
     (out / "results.json").write_text("{")
     assert main(["report", str(out)]) == 0

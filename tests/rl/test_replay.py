@@ -327,3 +327,26 @@ def test_a_replay_larger_than_the_memory_available_is_refused_before_training(tm
 
     # Nothing written but the folder and its lock.
     assert [p.name for p in (tmp_path / "run").iterdir()] == [LOCK_NAME]
+    # A finished run loads no replay: it resumes to nothing whatever memory is left; one
+    # with training left checks before it loads its replay.
+    monkeypatch.setattr(learner_module, "available_memory", lambda: None)
+    train_policy(cfg, tmp_path / "done", progress=False, say=lambda _l: None)
+    monkeypatch.setattr(learner_module, "available_memory", lambda: 2**20)
+    assert train_policy(cfg, tmp_path / "done", resume=True, progress=False, say=lambda _l: None)["transitions"] >= 300
+    longer = PolicyTrainConfig.model_validate({**TINY, "mode": "raw", "steps": 400})
+    with pytest.raises(ConfigError, match="GiB of memory is available"):
+        train_policy(longer, tmp_path / "done", resume=True, progress=False, say=lambda _l: None)
+
+
+def test_the_memory_available_is_the_least_of_the_machines_and_the_cgroups(tmp_path, monkeypatch):
+    import latentdrive.runtime as runtime
+
+    limit, used = tmp_path / "memory.max", tmp_path / "memory.current"
+    monkeypatch.setattr(runtime, "_cgroup_memory_files", lambda: [(limit, used)])
+    limit.write_text("1000\n")
+    used.write_text("400\n")
+    assert runtime.available_memory() == 600
+    for no_cap in ("max", str(2**63 - 4096)):  # v2 and v1 ways to say "no limit": the machine's figure
+        limit.write_text(no_cap + "\n")
+        have = runtime.available_memory()
+        assert have is None or have > 2**20

@@ -378,3 +378,22 @@ def test_a_run_that_keeps_its_best_weights_refuses_to_load_before_any_evaluation
         train_policy(tiny(mode="raw", steps=300, eval_every=2, keep="best"), tmp_path / "r", **_quiet())
     with pytest.raises(CheckpointError, match="no evaluated weights yet"):
         load_policy_network(tmp_path / "r")
+
+
+@pytest.mark.parametrize("bad", ["nan", "-5", "inf", "soon"])
+def test_a_resumption_refuses_a_logged_time_that_is_not_seconds(tmp_path, tiny, bad):
+    from latentdrive.config import ConfigError
+
+    run = tmp_path / "r"
+    train_policy(tiny(mode="latent-random", steps=200), run, **_quiet())
+    metrics = run / "metrics.csv"
+    rows = list(csv.DictReader(open(metrics)))
+    rows[-1]["elapsed_s"] = bad
+    with open(metrics, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+    before = metrics.read_bytes()
+    with pytest.raises(ConfigError, match=r"elapsed_s .* is not a number of seconds") as info:
+        train_policy(tiny(mode="latent-random", steps=300), run, resume=True, **_quiet())
+    assert "\n" not in str(info.value) and metrics.read_bytes() == before
