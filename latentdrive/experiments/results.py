@@ -4,7 +4,7 @@ Rates of one policy on one test set carry Wilson intervals over episodes; rates 
 policy *kind* (say, latent policies trained on the mix) average its training seeds and
 carry rliable's bootstrap interval over seeds. Bottleneck and baseline meet identical
 episodes, so they are compared with McNemar's exact test on the paired episodes (pooled
-over seeds: seed ``k`` of one against seed ``k`` of the other).
+over seeds: seed ``k`` of one against seed ``k`` of the other), and seed by seed.
 """
 
 from __future__ import annotations
@@ -39,6 +39,9 @@ __all__ = ["MIXED", "gather_results"]
 
 MIXED = "mixed"
 Episodes = list[EpisodeOutcome]
+#: References each mix policy seed is tested against, alone (the rule driver is the bar a
+#: learned policy must clear; the random policy, the least it must do).
+PER_SEED_REFERENCES = ("random", "rule")
 
 
 def _load(path: Path, eval_cfg: Mapping[str, Any]) -> Episodes:
@@ -124,6 +127,12 @@ class _Study:
             out[what] = paired_test(fa, fb).as_dict()
         return out
 
+    def paired_per_seed(self, a: str, b: str, train: str, test: str = MIXED) -> list[dict[str, Any]]:
+        """Seed ``k`` of ``a`` against seed ``k`` of ``b`` on identical episodes (failure), each seed alone."""
+        xa, xb = self.seeds(a, train), self.seeds(b, train)
+        return [paired_test(_flags(_subset(ea, test), "failure"), _flags(_subset(eb, test), "failure")).as_dict()
+                for ea, eb in zip(xa, xb, strict=True)]
+
     def against_reference(self, rep: str, train: str, ref: str, test: str = MIXED) -> list[dict[str, Any]]:
         """Each seed of a policy kind against a reference on the same episodes (failure)."""
         ref_eps = _subset(self.eps[reference_name(ref)], test)
@@ -182,9 +191,10 @@ def gather_results(cfg: ReproduceConfig, graph: Graph, out: Path, records: Mappi
     res["domain_adaptation"] = {rep: {s: {"mixed": st.kind(rep, MIXED, [s])[s]["failure"],
                                           "oracle": st.kind(rep, s, [s])[s]["failure"]} for s in scen} for rep in REPS}
 
-    res["vs_random"] = {}
-    if "random" in cfg.evaluate.references:
-        res["vs_random"] = {rep: st.against_reference(rep, MIXED, "random") for rep in REPS}
+    # Each seed on its own: whether every training seed, not just their mean, beats a reference.
+    res["per_seed"] = {"latent_vs_raw": st.paired_per_seed("latent", "raw", MIXED),
+                       **{f"vs_{ref}": {rep: st.against_reference(rep, MIXED, ref) for rep in REPS}
+                          for ref in PER_SEED_REFERENCES if ref in cfg.evaluate.references}}
 
     if exp.transfer_target:
         t = exp.transfer_target

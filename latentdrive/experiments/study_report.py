@@ -144,8 +144,49 @@ def _imitation(res: dict[str, Any]) -> list[str]:
             "(failure %, mix policies):", "",
             *_table(["test set", "raw (DQN)", "latent (DQN)", "imitation", "rule", "planner"], rows), "",
             f"Raw DQN against the imitation reference on the same mixed episodes (seed k against seed k): "
-            f"{100 * vs['difference']:+.1f} percentage points of failures [{100 * vs['lo']:+.1f}, {100 * vs['hi']:+.1f}], "
+            f"{_points(vs)} percentage points of failures, "
             f"McNemar p {_p(vs['p_value'])}."]
+
+
+def _points(t: dict[str, Any]) -> str:
+    """A paired test's difference in percentage points with its interval."""
+    if t["difference"] is None:
+        return "–"
+    return f"{100 * t['difference']:+.1f} [{_signed_points(t['lo'])}, {_signed_points(t['hi'])}]"
+
+
+def _signed_points(v: float | None) -> str:
+    return "–" if v is None else f"{100 * v:+.1f}"
+
+
+def _below(t: dict[str, Any], alpha: float = 0.05) -> bool:
+    """Significantly fewer failures than the other arm of a paired test."""
+    return t["rate_a"] < t["rate_b"] and t["p_value"] is not None and t["p_value"] < alpha
+
+
+def _per_seed(per: dict[str, Any]) -> list[str]:
+    """Section 1's seed-by-seed tables: each mix policy against the references, and latent
+    against raw, on the same mixed episodes."""
+    refs = [r for r in ("random", "rule") if per.get(f"vs_{r}")]
+    md: list[str] = []
+    if refs:
+        first = per[f"vs_{refs[0]}"]
+        header = ["policy", "seed", "fail %", *(h for r in refs for h in (f"{r} fail %", "McNemar p"))]
+        rows = [[rep, str(k), _pct(t["rate_a"]),
+                 *(c for r in refs for c in (_pct(per[f"vs_{r}"][rep][k]["rate_b"]), _p(per[f"vs_{r}"][rep][k]["p_value"])))]
+                for rep, tests in first.items() for k, t in enumerate(tests)]
+        md += ["", "Mixed-scenario policies against the references on the same episodes, seed by seed (failure):", "",
+               *_table(header, rows)]
+        if "rule" in refs:
+            counts = [f"`{rep}` {sum(_below(t) for t in tests)} of {len(tests)}" for rep, tests in per["vs_rule"].items()]
+            md += ["", "Seeds that fail significantly less often than the rule driver (McNemar p < 0.05): "
+                   + ", ".join(counts) + "."]
+    if per.get("latent_vs_raw"):
+        md += ["", "Latent against raw, seed by seed (mixed test set, failure):", "",
+               *_table(["seed", "raw fail %", "latent fail %", "latent − raw (points)", "McNemar p"],
+                       [[str(k), _pct(t["rate_b"]), _pct(t["rate_a"]), _points(t), _p(t["p_value"])]
+                        for k, t in enumerate(per["latent_vs_raw"])])]
+    return md
 
 
 def write_report(res: dict[str, Any], out: Path) -> str:
@@ -179,11 +220,7 @@ def write_report(res: dict[str, Any], out: Path) -> str:
     md += ["", "The paper reports 47% fewer crashed and failed episodes with the bottleneck ('fewer failures': "
            "1 − latent / raw over the paired episodes, with its 95% bootstrap interval over episodes; it describes "
            "these trained policies, not other training seeds)."]
-    if res.get("vs_random"):
-        md += ["", "Mixed-scenario policies against the random policy on the same episodes (failure, per seed):", ""]
-        md += _table(["policy", "seed", "policy fail %", "random fail %", "McNemar p"],
-                     [[rep, str(k), _pct(t["rate_a"]), _pct(t["rate_b"]), _p(t["p_value"])]
-                      for rep, tests in res["vs_random"].items() for k, t in enumerate(tests)])
+    md += _per_seed(res["per_seed"])
 
     if "imitation" in res:
         md += _imitation(res)

@@ -18,7 +18,7 @@ from latentdrive.experiments.study_runs import read_runs
 
 def test_the_tiny_study_reports_every_experiment(tiny_study: Path) -> None:
     res = json.loads((tiny_study / "results.json").read_text())
-    assert {"headline", "matrix", "domain_adaptation", "transfer", "leave_one_out", "ablations", "vs_random",
+    assert {"headline", "matrix", "domain_adaptation", "transfer", "leave_one_out", "ablations", "per_seed",
             "references", "bnn", "probes", "steps", "meta"} <= set(res)
     scen = ["roundabout", "intersection", "merge"]
     assert [r["test"] for r in res["headline"]] == [*scen, "mixed"]
@@ -316,3 +316,28 @@ def test_the_reported_command_holds_what_defines_the_run() -> None:
     assert command("--ray", "auto", "--gpu-fraction", "0.25").endswith("--ray auto --gpu-fraction 0.25")
     # Without Ray the share asks for nothing, and at its default it says nothing.
     assert "--gpu-fraction" not in command("--gpu-fraction", "0.25") + command("--ray", "auto")
+
+
+def test_the_report_tests_every_seed_against_the_rule_driver_and_latent_against_raw(tiny_study: Path,
+                                                                                      tmp_path: Path) -> None:
+    from latentdrive.experiments.study_report import write_report
+
+    res = json.loads((tiny_study / "results.json").read_text())
+    per = res["per_seed"]
+    # One entry per seed, each of the same episodes (the mixed test set) on both sides.
+    mixed = res["evaluation"]["episodes_per_scenario"] * len(res["scenarios"])
+    assert set(per) == {"latent_vs_raw", "vs_random", "vs_rule"}
+    assert all(len(per[k][rep]) == res["seeds"] for k in ("vs_random", "vs_rule") for rep in ("raw", "latent"))
+    assert len(per["latent_vs_raw"]) == res["seeds"] and all(t["n"] == mixed for t in per["latent_vs_raw"])
+    assert per["vs_rule"]["raw"][0]["rate_b"] == res["references"]["rule"]["mixed"]["failure"]["rate"]
+    # Two seeds: one significantly below the rule driver, one below it but not significantly.
+    test = {"n": 400, "rate_a": 0.3, "rate_b": 0.6, "difference": -0.3, "lo": -0.36, "hi": -0.24, "p_value": 1e-6}
+    per["vs_rule"] = {"raw": [test, {**test, "p_value": 0.2}], "latent": [{**test, "rate_a": 0.7}, test]}
+    per["vs_random"] = {rep: [{**test, "rate_b": 0.9}] * 2 for rep in ("raw", "latent")}
+    per["latent_vs_raw"] = [test, {**test, "difference": None, "lo": None, "hi": None, "p_value": None}]
+    write_report(res, tmp_path)
+    lines = (tmp_path / "report.md").read_text().splitlines()
+    assert ("Seeds that fail significantly less often than the rule driver (McNemar p < 0.05): `raw` 1 of 2, "
+            "`latent` 1 of 2.") in lines
+    assert "| raw | 1 | 30.0 | 90.0 | <0.001 | 60.0 | 0.200 |" in lines
+    assert "| 0 | 60.0 | 30.0 | -30.0 [-36.0, -24.0] | <0.001 |" in lines and "| 1 | 60.0 | 30.0 | – | – |" in lines
