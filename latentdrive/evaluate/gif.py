@@ -22,12 +22,13 @@ from latentdrive.observe import CHANNELS
 from latentdrive.scene import Scene
 from latentdrive.viz import draw_scene
 
-__all__ = ["save_episode_gif"]
+__all__ = ["save_episode_gif", "save_side_by_side_gif"]
 
 _DPI = 80
 _WIDTH_IN = 14.0
 _BODY_IN = {1: 2.6, 2: 4.0}  # height below the title, by rows of channel images, inches
 _TITLE_IN = 0.5
+_PANEL_IN = 4.2  # a side-by-side panel's width and height below its title, inches
 
 
 def _check(
@@ -131,6 +132,60 @@ def save_episode_gif(
             heading += f" — {title}"
         recon = None if reconstructions is None else reconstructions[i]
         frames.append(_render_frame(scene, obs, recon, obs_cfg, agent, heading))
+    return _write_gif(path, frames, fps)
+
+
+def save_side_by_side_gif(
+    path: str | Path,
+    episodes: Sequence[tuple[str, Sequence[Scene]]],
+    obs_cfg: ObservationConfig,
+    *,
+    agent: int = 0,
+    title: str = "",
+    fps: float = 2.0,
+) -> Path:
+    """Write several policies' runs of one episode side by side as an animated GIF.
+
+    Args:
+        path: the GIF to write, atomically; its folder is created.
+        episodes: ``(label, scenes)`` per policy, each the Scene at every step of the same
+            episode (same seed). A policy whose episode ended sooner keeps its last
+            scene, marked as ended, while the others go on.
+        obs_cfg: the observation settings (to draw the observed window on the scenes).
+        agent: which AV the panels follow (an index into the env's agents).
+        title: appended to each frame's heading, after the step index.
+        fps: frames per second.
+
+    Raises:
+        ValueError: no policy, an empty episode, ``agent`` out of range, or a
+            non-positive ``fps``.
+    """
+    if not episodes or any(not scenes for _, scenes in episodes):
+        raise ValueError("save_side_by_side_gif: every policy needs a non-empty episode")
+    if not (np.isfinite(fps) and fps > 0):
+        raise ValueError(f"save_side_by_side_gif: fps must be positive, got {fps}")
+    for label, scenes in episodes:
+        if not all(0 <= agent < s.n_agents for s in scenes):
+            raise ValueError(f"save_side_by_side_gif: agent {agent} is out of range in {label}'s episode")
+    n = max(len(scenes) for _, scenes in episodes)
+    frames = []
+    for i in range(n):
+        heading = f"step {i}/{n - 1}" + (f" — {title}" if title else "")
+        fig = Figure(figsize=(_PANEL_IN * len(episodes), _PANEL_IN + _TITLE_IN + 0.4), dpi=_DPI)
+        canvas = FigureCanvasAgg(fig)
+        grid = fig.add_gridspec(1, len(episodes), left=0.01, right=0.99, bottom=0.02, top=0.82, wspace=0.05)
+        for c, (label, scenes) in enumerate(episodes):
+            scene = scenes[min(i, len(scenes) - 1)]
+            ax = fig.add_subplot(grid[0, c])
+            draw_scene(ax, scene, int(scene.agents[agent]), obs_cfg)
+            ax.set_title(label + ("" if i < len(scenes) else "\n(episode over)"), fontsize=9)
+        fig.suptitle(heading, fontsize=11)
+        canvas.draw()
+        frames.append(np.asarray(canvas.buffer_rgba())[..., :3].copy())
+    return _write_gif(path, frames, fps)
+
+
+def _write_gif(path: str | Path, frames: Sequence[np.ndarray], fps: float) -> Path:
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     data = iio.imwrite("<bytes>", np.stack(frames), extension=".gif", duration=1000.0 / fps, loop=0)

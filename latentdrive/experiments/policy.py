@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 import torch
 
 from latentdrive.config import ConfigError
-from latentdrive.evaluate.gif import save_episode_gif
+from latentdrive.evaluate.gif import save_episode_gif, save_side_by_side_gif
 from latentdrive.evaluate.planner import PlannerConfig
 from latentdrive.evaluate.policies import SIMULATOR_POLICIES, reference_policy
 from latentdrive.evaluate.report import PolicyReport, policy_report
@@ -25,7 +25,17 @@ from latentdrive.scenarios import RewardConfig, ScenarioSpec, resolve_specs
 from latentdrive.seeds import eval_reset_seed
 from latentdrive.vec import make_vec
 
-__all__ = ["EvaluationSet", "evaluate_many", "pairs_to_channels", "policy_makers", "save_policy_gif"]
+__all__ = [
+    "EvaluationSet",
+    "PlayedEpisode",
+    "evaluate_many",
+    "outcome_label",
+    "pairs_to_channels",
+    "play_episode",
+    "policy_makers",
+    "save_policies_gif",
+    "save_policy_gif",
+]
 
 
 class EvaluationSet:
@@ -116,25 +126,74 @@ def pairs_to_channels(pairs: torch.Tensor) -> np.ndarray:
     return out
 
 
-def save_policy_gif(path: str | Path, net: QNetwork | None, make_policy: Callable[[], Policy], scenario: str,
-                    eval_set: EvaluationSet, title: str, device: torch.device) -> Path:
-    """One evaluation episode of ``scenario`` as a GIF, seen by agent 0; with the BNN's
-    reconstruction when ``net`` has a trained encoder (latent modes)."""
-    kw = eval_set.env_overrides()
-    vec = make_vec(eval_set.specs[scenario], 1, backend=eval_set.backend, **kw)
+class PlayedEpisode(NamedTuple):
+    """One episode of one environment, step by step."""
+
+    #: The Scene after each step, and the observations ``(n_av, 4, T, H, W)`` the agents see then.
+    scenes: list[Any]
+    observations: list[np.ndarray]
+    outcome: EpisodeOutcome
+    #: The environment's observation settings (to draw the observed window).
+    observation: Any
+
+
+def play_episode(make_policy: Callable[[], Policy], scenario: str, eval_set: EvaluationSet, name: str | None = None,
+                 episode: int = 0) -> PlayedEpisode:
+    """Episode ``episode`` (0: the first) that one environment plays from the evaluation's
+    reset seed, under policy ``name``. Every policy meets the same episode
+    (:func:`latentdrive.rollout.rollout`)."""
+    if episode < 0:
+        raise ConfigError(f"the episode to draw must be 0 or more, got {episode}")
+    vec = make_vec(eval_set.specs[scenario], 1, backend=eval_set.backend, **eval_set.env_overrides(name))
     scenes: list[Any] = []
     observations: list[np.ndarray] = []
-    for rec in rollout(vec, make_policy(), seed=eval_reset_seed(eval_set.seed_offset)):
-        scenes.append(rec.scenes[0])
-        observations.append(rec.next_obs[0])
-        if rec.ended[0]:
-            break
+    played = 0
+    try:
+        for rec in rollout(vec, make_policy(), seed=eval_reset_seed(eval_set.seed_offset)):
+            if played == episode:
+                scenes.append(rec.scenes[0])
+                observations.append(rec.next_obs[0])
+            if rec.ended[0]:
+                if played == episode:
+                    return PlayedEpisode(scenes, observations, rec.outcomes[0], vec.configs[0].observation)
+                played += 1
+    finally:
+        vec.close()
+    raise AssertionError("rollout ended")  # it never does: it drives until told to stop
+
+
+def outcome_label(outcome: EpisodeOutcome) -> str:
+    """How an episode ended, in a few words."""
+    crashed, arrived = int(outcome.agent_crashed.sum()), int(outcome.agent_arrived.sum())
+    n = len(outcome.agent_crashed)
+    if crashed:
+        return f"failed: {crashed} of {n} AVs crashed"
+    if arrived < n:
+        return f"failed: time ran out ({arrived} of {n} AVs arrived)"
+    return f"success: all {n} AVs arrived"
+
+
+def save_policy_gif(path: str | Path, net: QNetwork | None, make_policy: Callable[[], Policy], scenario: str,
+                    eval_set: EvaluationSet, title: str, device: torch.device, episode: int = 0) -> Path:
+    """One evaluation episode of ``scenario`` as a GIF, seen by agent 0; with the BNN's
+    reconstruction when ``net`` has a trained encoder (latent modes)."""
+    scenes, observations, outcome, cfg = play_episode(make_policy, scenario, eval_set, episode=episode)
     recon = None
     if net is not None and net.mode == "latent" and net.encoder is not None:
         with torch.no_grad():
             x = torch.from_numpy(np.stack([o[0] for o in observations])).to(device)
             pairs = net.encoder.decode(net.encoder.encode(x))
         recon = [pairs_to_channels(p) for p in pairs]
-    cfg = vec.configs[0].observation
-    vec.close()
-    return save_episode_gif(path, scenes, observations, cfg, agent=0, reconstructions=recon, title=title)
+    return save_episode_gif(path, scenes, observations, cfg, agent=0, reconstructions=recon,
+                            title=f"{title}, episode seed {outcome.seed}: {outcome_label(outcome)}")
+
+
+def save_policies_gif(path: str | Path, makers: Mapping[str, Callable[[], Policy]], scenario: str,
+                      eval_set: EvaluationSet, episode: int = 0) -> Path:
+    """The same evaluation episode of ``scenario`` under every policy, side by side, each
+    panel named with how the episode ended for it."""
+    played = {name: play_episode(make, scenario, eval_set, name, episode) for name, make in makers.items()}
+    first = next(iter(played.values()))
+    panels = [(f"{name}: {outcome_label(p.outcome)}", p.scenes) for name, p in played.items()]
+    return save_side_by_side_gif(path, panels, first.observation, agent=0,
+                                 title=f"{scenario}, episode seed {first.outcome.seed}")

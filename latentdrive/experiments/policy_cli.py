@@ -82,6 +82,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         EvaluationSet,
         evaluate_many,
         policy_makers,
+        save_policies_gif,
         save_policy_gif,
         write_json,
     )
@@ -126,6 +127,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         scenarios = list(SCENARIOS)
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
+    if args.gif_episode < 0:
+        raise ConfigError(f"--gif-episode must be 0 or more, got {args.gif_episode}")
     if not 1 <= args.envs <= MAX_ENVS:
         raise ConfigError(f"--envs must be in [1, {MAX_ENVS}], got {args.envs}")
     eval_reset_seed(args.seed_offset)  # a one-line error for an offset out of range
@@ -202,13 +205,15 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         doc["outcomes"] = outcome_block(outcomes, eval_set.specs)
         print(f"wrote {write_json(args.json, doc)}")
     if args.gif:
-        if runs:
+        if len(makers) > 1:
+            path = save_policies_gif(args.gif, makers, scenarios[0], eval_set, args.gif_episode)
+        elif runs:
             net, _ = load_policy_network(runs[0], device)
             path = save_policy_gif(args.gif, net, greedy_policy(net, device), scenarios[0], eval_set,
-                                   f"{runs[0]} ({net.mode}) on {scenarios[0]}", device)
+                                   f"{runs[0]} ({net.mode}) on {scenarios[0]}", device, args.gif_episode)
         else:
             path = save_policy_gif(args.gif, None, makers[references[0]], scenarios[0], eval_set,
-                                   f"{references[0]} on {scenarios[0]}", device)
+                                   f"{references[0]} on {scenarios[0]}", device, args.gif_episode)
         print(f"wrote {path}")
     return 0
 
@@ -340,7 +345,12 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("--json", default="", help="write the results to this JSON file")
     s.add_argument("--compare", default="",
                    help="a second run, or a reference policy name: paired differences on the same episodes and McNemar's exact test")
-    s.add_argument("--gif", default="", help="draw one episode of the first scenario to this GIF")
+    s.add_argument("--gif", default="", help="draw one episode of the first scenario to this GIF: the scene beside "
+                   "the map a policy sees, or with several policies (a RUN, --compare, --policy) the same episode "
+                   "under each, side by side")
+    s.add_argument("--gif-episode", type=int, default=0, metavar="K",
+                   help="which episode --gif draws: the K-th one environment plays from the evaluation's reset "
+                   "seed (default 0, the first)")
     s.add_argument("--causes", action="store_true",
                    help="also print how the episodes ended: success, time-out, or a crash by where the other "
                    "vehicle was (HV ahead, behind, beside; the other AV; none: off the road)")

@@ -280,6 +280,8 @@ def test_bad_evaluation_options_fail_before_any_work(tmp_path, capsys, raw_run):
     _fails(capsys, ["evaluate", str(raw_run), "--seed-offset", "-1", "--episodes", "2"], "offset", tmp_path)
     _fails(capsys, ["evaluate", str(raw_run), "--json", str(tmp_path), "--episodes", "2"], "--json", tmp_path)
     _fails(capsys, ["evaluate", "--scenarios", "merge,merge", "--episodes", "2"], "repeats", tmp_path)
+    _fails(capsys, ["evaluate", "--policy", "rule", "--gif", str(tmp_path / "g.gif"), "--gif-episode", "-1"],
+           "--gif-episode", tmp_path)
     _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "raw", "--scenarios", "merge,merge", *TINY_SETS],
            "repeat", tmp_path)
 
@@ -449,3 +451,24 @@ def test_the_actions_script_reports_the_runs_own_driving(raw_run, capsys):
     shares = [float(x) for x in out[1].split()[3::2]]
     assert len(shares) == 5 and abs(sum(shares) - 1.0) < 1e-3
     assert out[3].startswith("best - second  median ")
+
+
+def test_the_gif_of_several_policies_plays_one_episode_under_each(tmp_path, capsys, raw_run):
+    import imageio.v3 as iio
+
+    from latentdrive.evaluate.policies import reference_policy
+    from latentdrive.experiments.policy import EvaluationSet, play_episode
+
+    out = tmp_path / "side.gif"
+    assert main(["evaluate", str(raw_run), "--policy", "stop", "--scenarios", "intersection", "--episodes", "1",
+                 "--envs", "1", "--gif", str(out), "--gif-episode", "1", "-q"]) == 0
+    assert f"wrote {out}" in capsys.readouterr().out
+    frames = iio.imread(out, index=None)
+    from latentdrive.evaluate import gif
+
+    assert frames.shape[2] == round(2 * gif._PANEL_IN * gif._DPI)  # one panel per policy: the run and `stop`
+    # Every policy meets the same episode: the K-th of the evaluation's reset seed.
+    eval_set = EvaluationSet(["intersection"], 1, 1, "fast", 0)
+    seeds = {(name, k): play_episode(reference_policy(name), "intersection", eval_set, episode=k).outcome.seed
+             for name in ("stop", "idle") for k in (0, 1)}
+    assert seeds["stop", 0] == seeds["idle", 0] != seeds["stop", 1] == seeds["idle", 1]
