@@ -137,8 +137,7 @@ def save_episode_gif(
 
 def save_side_by_side_gif(
     path: str | Path,
-    episodes: Sequence[tuple[str, Sequence[Scene]]],
-    obs_cfg: ObservationConfig,
+    episodes: Sequence[tuple[str, Sequence[Scene], ObservationConfig]],
     *,
     agent: int = 0,
     title: str = "",
@@ -148,10 +147,10 @@ def save_side_by_side_gif(
 
     Args:
         path: the GIF to write, atomically; its folder is created.
-        episodes: ``(label, scenes)`` per policy, each the Scene at every step of the same
-            episode (same seed). A policy whose episode ended sooner keeps its last
-            scene, marked as ended, while the others go on.
-        obs_cfg: the observation settings (to draw the observed window on the scenes).
+        episodes: ``(label, scenes, observation settings)`` per policy: the Scene at every
+            step of the same episode (same seed), and what the policy observes (to draw
+            its window). A policy whose episode ended sooner keeps its last scene, marked
+            as ended, while the others go on.
         agent: which AV the panels follow (an index into the env's agents).
         title: appended to each frame's heading, after the step index.
         fps: frames per second.
@@ -160,21 +159,21 @@ def save_side_by_side_gif(
         ValueError: no policy, an empty episode, ``agent`` out of range, or a
             non-positive ``fps``.
     """
-    if not episodes or any(not scenes for _, scenes in episodes):
+    if not episodes or any(not scenes for _, scenes, _ in episodes):
         raise ValueError("save_side_by_side_gif: every policy needs a non-empty episode")
     if not (np.isfinite(fps) and fps > 0):
         raise ValueError(f"save_side_by_side_gif: fps must be positive, got {fps}")
-    for label, scenes in episodes:
+    for label, scenes, _ in episodes:
         if not all(0 <= agent < s.n_agents for s in scenes):
             raise ValueError(f"save_side_by_side_gif: agent {agent} is out of range in {label}'s episode")
-    n = max(len(scenes) for _, scenes in episodes)
+    n = max(len(scenes) for _, scenes, _ in episodes)
     frames = []
     for i in range(n):
         heading = f"step {i}/{n - 1}" + (f" — {title}" if title else "")
         fig = Figure(figsize=(_PANEL_IN * len(episodes), _PANEL_IN + _TITLE_IN + 0.4), dpi=_DPI)
         canvas = FigureCanvasAgg(fig)
         grid = fig.add_gridspec(1, len(episodes), left=0.01, right=0.99, bottom=0.02, top=0.82, wspace=0.05)
-        for c, (label, scenes) in enumerate(episodes):
+        for c, (label, scenes, obs_cfg) in enumerate(episodes):
             scene = scenes[min(i, len(scenes) - 1)]
             ax = fig.add_subplot(grid[0, c])
             draw_scene(ax, scene, int(scene.agents[agent]), obs_cfg)

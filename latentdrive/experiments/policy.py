@@ -166,11 +166,12 @@ def outcome_label(outcome: EpisodeOutcome) -> str:
     """How an episode ended, in a few words."""
     crashed, arrived = int(outcome.agent_crashed.sum()), int(outcome.agent_arrived.sum())
     n = len(outcome.agent_crashed)
+    wreck = ", HVs crashed among themselves" if outcome.traffic_crashed else ""
     if crashed:
-        return f"failed: {crashed} of {n} AVs crashed"
+        return f"failed: {crashed} of {n} AVs crashed{wreck}"
     if arrived < n:
-        return f"failed: time ran out ({arrived} of {n} AVs arrived)"
-    return f"success: all {n} AVs arrived"
+        return f"failed: time ran out ({arrived} of {n} AVs arrived{wreck})"
+    return f"success: all {n} AVs arrived{wreck}"
 
 
 def save_policy_gif(path: str | Path, net: QNetwork | None, make_policy: Callable[[], Policy], scenario: str,
@@ -193,7 +194,8 @@ def save_policies_gif(path: str | Path, makers: Mapping[str, Callable[[], Policy
     """The same evaluation episode of ``scenario`` under every policy, side by side, each
     panel named with how the episode ended for it."""
     played = {name: play_episode(make, scenario, eval_set, name, episode) for name, make in makers.items()}
-    first = next(iter(played.values()))
-    panels = [(f"{name}: {outcome_label(p.outcome)}", p.scenes) for name, p in played.items()]
-    return save_side_by_side_gif(path, panels, first.observation, agent=0,
-                                 title=f"{scenario}, episode seed {first.outcome.seed}")
+    seeds = {p.outcome.seed for p in played.values()}
+    if len(seeds) != 1:  # rollout's promise, checked: the title names one episode for all
+        raise AssertionError(f"the policies met different episodes (seeds {sorted(seeds)})")
+    panels = [(f"{name}: {outcome_label(p.outcome)}", p.scenes, p.observation) for name, p in played.items()]
+    return save_side_by_side_gif(path, panels, agent=0, title=f"{scenario}, episode seed {seeds.pop()}")

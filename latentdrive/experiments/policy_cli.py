@@ -78,6 +78,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         check_references,
     )
     from latentdrive.evaluate.report import format_compare, format_table
+    from latentdrive.evaluate.run import quotas
     from latentdrive.experiments.policy import (
         EvaluationSet,
         evaluate_many,
@@ -127,11 +128,17 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         scenarios = list(SCENARIOS)
     if args.episodes < 1:
         raise ConfigError(f"--episodes must be at least 1, got {args.episodes}")
-    if args.gif_episode < 0:
-        raise ConfigError(f"--gif-episode must be 0 or more, got {args.gif_episode}")
     if not 1 <= args.envs <= MAX_ENVS:
         raise ConfigError(f"--envs must be in [1, {MAX_ENVS}], got {args.envs}")
     eval_reset_seed(args.seed_offset)  # a one-line error for an offset out of range
+    if args.gif_episode and not args.gif:
+        raise ConfigError("--gif-episode needs --gif")
+    first_slot = quotas(args.episodes, min(args.envs, args.episodes))[0]
+    if not 0 <= args.gif_episode < first_slot:
+        # Episodes past those draw ones the evaluation never played.
+        raise ConfigError(f"--gif-episode must be in [0, {first_slot}): the evaluation's first environment plays "
+                          f"{first_slot} of its episodes (--episodes {args.episodes}, --envs {args.envs}), "
+                          f"got {args.gif_episode}")
     clash = sorted(set(runs) & set(references))
     if clash:
         raise ConfigError(f"{clash[0]!r} names both a run and a reference policy; give the run as ./{clash[0]}")
@@ -205,7 +212,8 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         doc["outcomes"] = outcome_block(outcomes, eval_set.specs)
         print(f"wrote {write_json(args.json, doc)}")
     if args.gif:
-        if len(makers) > 1:
+        # Side by side where the policies were chosen (not the default references beside a run).
+        if len(makers) > 1 and (args.policy is not None or args.compare):
             path = save_policies_gif(args.gif, makers, scenarios[0], eval_set, args.gif_episode)
         elif runs:
             net, _ = load_policy_network(runs[0], device)
@@ -346,11 +354,11 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("--compare", default="",
                    help="a second run, or a reference policy name: paired differences on the same episodes and McNemar's exact test")
     s.add_argument("--gif", default="", help="draw one episode of the first scenario to this GIF: the scene beside "
-                   "the map a policy sees, or with several policies (a RUN, --compare, --policy) the same episode "
-                   "under each, side by side")
+                   "the map the RUN (or the first reference) sees, or, with policies named by --compare or --policy "
+                   "beside it, the same episode under each, side by side")
     s.add_argument("--gif-episode", type=int, default=0, metavar="K",
-                   help="which episode --gif draws: the K-th one environment plays from the evaluation's reset "
-                   "seed (default 0, the first)")
+                   help="which episode --gif draws: the K-th one the evaluation's first environment plays "
+                   "(default 0, the first)")
     s.add_argument("--causes", action="store_true",
                    help="also print how the episodes ended: success, time-out, or a crash by where the other "
                    "vehicle was (HV ahead, behind, beside; the other AV; none: off the road)")

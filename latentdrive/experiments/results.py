@@ -130,8 +130,8 @@ class _Study:
     def paired_per_seed(self, a: str, b: str, train: str, test: str = MIXED) -> list[dict[str, Any]]:
         """Seed ``k`` of ``a`` against seed ``k`` of ``b`` on identical episodes (failure), each seed alone."""
         xa, xb = self.seeds(a, train), self.seeds(b, train)
-        return [paired_test(_flags(_subset(ea, test), "failure"), _flags(_subset(eb, test), "failure")).as_dict()
-                for ea, eb in zip(xa, xb, strict=True)]
+        return [paired_test(_flags(_subset(xa[k], test), "failure"), _flags(_subset(xb[k], test), "failure")).as_dict()
+                for k in range(min(len(xa), len(xb)))]
 
     def against_reference(self, rep: str, train: str, ref: str, test: str = MIXED) -> list[dict[str, Any]]:
         """Each seed of a policy kind against a reference on the same episodes (failure)."""

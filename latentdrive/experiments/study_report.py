@@ -159,9 +159,11 @@ def _signed_points(v: float | None) -> str:
     return "–" if v is None else f"{100 * v:+.1f}"
 
 
-def _below(t: dict[str, Any], alpha: float = 0.05) -> bool:
-    """Significantly fewer failures than the other arm of a paired test."""
-    return t["rate_a"] < t["rate_b"] and t["p_value"] is not None and t["p_value"] < alpha
+def _significant(t: dict[str, Any], fewer: bool, alpha: float = 0.05) -> bool:
+    """Significantly fewer (or more) failures than the other arm of a paired test."""
+    if t["p_value"] is None or t["p_value"] >= alpha:
+        return False
+    return t["rate_a"] < t["rate_b"] if fewer else t["rate_a"] > t["rate_b"]
 
 
 def _per_seed(per: dict[str, Any]) -> list[str]:
@@ -177,10 +179,14 @@ def _per_seed(per: dict[str, Any]) -> list[str]:
                 for rep, tests in first.items() for k, t in enumerate(tests)]
         md += ["", "Mixed-scenario policies against the references on the same episodes, seed by seed (failure):", "",
                *_table(header, rows)]
-        if "rule" in refs:
-            counts = [f"`{rep}` {sum(_below(t) for t in tests)} of {len(tests)}" for rep, tests in per["vs_rule"].items()]
-            md += ["", "Seeds that fail significantly less often than the rule driver (McNemar p < 0.05): "
-                   + ", ".join(counts) + "."]
+    if "rule" in refs:
+        vs = per["vs_rule"]
+        fewer = ", ".join(f"`{rep}` {sum(_significant(t, True) for t in tests)} of {len(tests)}" for rep, tests in vs.items())
+        more = ", ".join(f"`{rep}` {sum(_significant(t, False) for t in tests)}" for rep, tests in vs.items())
+        md += ["", f"Seeds that fail significantly less often than the rule driver (McNemar p < 0.05 for each seed, "
+               f"no correction over seeds): {fewer}; significantly more often: {more}."]
+    else:
+        md += ["", "The rule driver was not evaluated (`evaluate.references`): no seed is tested against it."]
     if per.get("latent_vs_raw"):
         md += ["", "Latent against raw, seed by seed (mixed test set, failure):", "",
                *_table(["seed", "raw fail %", "latent fail %", "latent − raw (points)", "McNemar p"],

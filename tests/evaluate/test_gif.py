@@ -77,7 +77,7 @@ def test_side_by_side_runs_to_the_longest_episode_and_keeps_a_finished_ones_last
     from latentdrive.evaluate.gif import save_side_by_side_gif
 
     scenes, _, cfg = episode
-    out = save_side_by_side_gif(tmp_path / "s.gif", [("long", scenes), ("short", scenes[:1])], cfg, title="merge")
+    out = save_side_by_side_gif(tmp_path / "s.gif", [("long", scenes, cfg), ("short", scenes[:1], cfg)], title="merge")
     frames = iio.imread(out, index=None)
     assert frames.shape[0] == STEPS
     half = frames.shape[2] // 2
@@ -90,11 +90,11 @@ def test_side_by_side_runs_to_the_longest_episode_and_keeps_a_finished_ones_last
         return float((frames[a, body, side] != frames[b, body, side]).any(-1).mean())
 
     assert changed(0, -1, slice(None, half)) > 0.005 > 0.001 > changed(1, -1, slice(half, None))
-    one = iio.imread(save_side_by_side_gif(tmp_path / "o.gif", [("long", scenes)], cfg), index=None)
+    one = iio.imread(save_side_by_side_gif(tmp_path / "o.gif", [("long", scenes, cfg)]), index=None)
     assert one.shape[2] * 2 == pytest.approx(frames.shape[2], abs=2)
-    for bad, needle in (([], "non-empty"), ([("x", [])], "non-empty")):
+    for bad, needle in (([], "non-empty"), ([("x", [], cfg)], "non-empty")):
         with pytest.raises(ValueError, match=needle):
-            save_side_by_side_gif(tmp_path / "x.gif", bad, cfg)
+            save_side_by_side_gif(tmp_path / "x.gif", bad)
     with pytest.raises(ValueError, match="agent 5 is out of range in long's episode"):
-        save_side_by_side_gif(tmp_path / "x.gif", [("long", scenes)], cfg, agent=5)
+        save_side_by_side_gif(tmp_path / "x.gif", [("long", scenes, cfg)], agent=5)
     assert not (tmp_path / "x.gif").exists()

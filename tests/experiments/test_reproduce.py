@@ -337,7 +337,13 @@ def test_the_report_tests_every_seed_against_the_rule_driver_and_latent_against_
     per["latent_vs_raw"] = [test, {**test, "difference": None, "lo": None, "hi": None, "p_value": None}]
     write_report(res, tmp_path)
     lines = (tmp_path / "report.md").read_text().splitlines()
-    assert ("Seeds that fail significantly less often than the rule driver (McNemar p < 0.05): `raw` 1 of 2, "
-            "`latent` 1 of 2.") in lines
+    assert ("Seeds that fail significantly less often than the rule driver (McNemar p < 0.05 for each seed, no "
+            "correction over seeds): `raw` 1 of 2, `latent` 1 of 2; significantly more often: `raw` 0, `latent` 1.") in lines
     assert "| raw | 1 | 30.0 | 90.0 | <0.001 | 60.0 | 0.200 |" in lines
     assert "| 0 | 60.0 | 30.0 | -30.0 [-36.0, -24.0] | <0.001 |" in lines and "| 1 | 60.0 | 30.0 | – | – |" in lines
+    # Without the rule driver the report says no seed was tested against it.
+    del per["vs_rule"]
+    write_report(res, tmp_path)
+    lines = (tmp_path / "report.md").read_text().splitlines()
+    assert "The rule driver was not evaluated (`evaluate.references`): no seed is tested against it." in lines
+    assert "| raw | 1 | 30.0 | 90.0 | <0.001 |" in lines

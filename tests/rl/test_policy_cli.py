@@ -282,6 +282,10 @@ def test_bad_evaluation_options_fail_before_any_work(tmp_path, capsys, raw_run):
     _fails(capsys, ["evaluate", "--scenarios", "merge,merge", "--episodes", "2"], "repeats", tmp_path)
     _fails(capsys, ["evaluate", "--policy", "rule", "--gif", str(tmp_path / "g.gif"), "--gif-episode", "-1"],
            "--gif-episode", tmp_path)
+    # Past the evaluation's first environment's share: an episode the evaluation never played.
+    _fails(capsys, ["evaluate", "--policy", "rule", "--episodes", "4", "--envs", "2", "--gif", str(tmp_path / "g.gif"),
+                    "--gif-episode", "2"], "--gif-episode must be in [0, 2)", tmp_path)
+    _fails(capsys, ["evaluate", "--policy", "rule", "--gif-episode", "1"], "--gif-episode needs --gif", tmp_path)
     _fails(capsys, ["train-policy", str(tmp_path / "r"), "--mode", "raw", "--scenarios", "merge,merge", *TINY_SETS],
            "repeat", tmp_path)
 
@@ -456,19 +460,40 @@ def test_the_actions_script_reports_the_runs_own_driving(raw_run, capsys):
 def test_the_gif_of_several_policies_plays_one_episode_under_each(tmp_path, capsys, raw_run):
     import imageio.v3 as iio
 
+    from latentdrive.evaluate import gif
     from latentdrive.evaluate.policies import reference_policy
     from latentdrive.experiments.policy import EvaluationSet, play_episode
 
-    out = tmp_path / "side.gif"
-    assert main(["evaluate", str(raw_run), "--policy", "stop", "--scenarios", "intersection", "--episodes", "1",
-                 "--envs", "1", "--gif", str(out), "--gif-episode", "1", "-q"]) == 0
+    out, doc = tmp_path / "side.gif", tmp_path / "e.json"
+    assert main(["evaluate", str(raw_run), "--policy", "stop", "--scenarios", "intersection", "--episodes", "2",
+                 "--envs", "1", "--gif", str(out), "--gif-episode", "1", "--json", str(doc), "-q"]) == 0
     assert f"wrote {out}" in capsys.readouterr().out
     frames = iio.imread(out, index=None)
-    from latentdrive.evaluate import gif
-
     assert frames.shape[2] == round(2 * gif._PANEL_IN * gif._DPI)  # one panel per policy: the run and `stop`
-    # Every policy meets the same episode: the K-th of the evaluation's reset seed.
-    eval_set = EvaluationSet(["intersection"], 1, 1, "fast", 0)
-    seeds = {(name, k): play_episode(reference_policy(name), "intersection", eval_set, episode=k).outcome.seed
-             for name in ("stop", "idle") for k in (0, 1)}
-    assert seeds["stop", 0] == seeds["idle", 0] != seeds["stop", 1] == seeds["idle", 1]
+    # The episode drawn is the evaluation's: the K-th its first environment played.
+    outcomes = json.loads(doc.read_text())["outcomes"]
+    rows = outcomes["policies"]["stop"]
+    evaluated = {(r["env_index"], r["episode_index"]): r["seed"] for r in rows}
+    eval_set = EvaluationSet(["intersection"], 2, 1, "fast", 0)
+    for k in (0, 1):
+        assert play_episode(reference_policy("stop"), "intersection", eval_set, episode=k).outcome.seed == evaluated[0, k]
+    # Beside a run, the default references are not drawn: the run's own view (scene and map).
+    assert main(["evaluate", str(raw_run), "--scenarios", "intersection", "--episodes", "1", "--envs", "1",
+                 "--gif", str(tmp_path / "run.gif"), "-q"]) == 0
+    assert iio.imread(tmp_path / "run.gif", index=None).shape[2] == round(gif._WIDTH_IN * gif._DPI)
+
+
+def test_an_episodes_label_says_how_it_ended():
+    import numpy as np
+
+    from latentdrive.experiments.policy import outcome_label
+    from latentdrive.outcome import EpisodeOutcome
+
+    def ended(crashed, arrived, traffic=False):
+        return EpisodeOutcome("merge", 0, 0, 1, 10, np.array(crashed), np.array(arrived), np.zeros(2), 5.0, traffic)
+
+    assert outcome_label(ended([True, False], [False, True])) == "failed: 1 of 2 AVs crashed"
+    assert outcome_label(ended([False, False], [True, False])) == "failed: time ran out (1 of 2 AVs arrived)"
+    assert outcome_label(ended([False, False], [True, True])) == "success: all 2 AVs arrived"
+    assert outcome_label(ended([False, False], [False, False], True)) == (
+        "failed: time ran out (0 of 2 AVs arrived, HVs crashed among themselves)")
