@@ -15,10 +15,11 @@ from typing import IO, Any
 import numpy as np
 
 from latentdrive.bnn.evaluate import VAL_KEYS
+from latentdrive.config import ConfigError
 from latentdrive.fileio import atomic_write_text, read_log
 
-__all__ = ["METRICS_NAME", "METRIC_COLUMNS", "Meter", "RunLog", "metrics_log", "peak_rss_mb", "read_metrics",
-           "write_metrics"]
+__all__ = ["METRICS_NAME", "METRIC_COLUMNS", "Meter", "RunLog", "logged_seconds", "metrics_log", "peak_rss_mb",
+           "read_metrics", "write_metrics"]
 
 METRICS_NAME = "metrics.csv"
 METRIC_COLUMNS = (
@@ -55,6 +56,24 @@ class Meter:
     def rate(self) -> float:
         """Samples per second."""
         return self.samples / max(self.seconds, 1e-9)
+
+
+def logged_seconds(rows: Sequence[Mapping[str, str]], step: int, where: Path) -> float:
+    """Seconds the epochs logged up to ``step`` took (what a run resumed there had already
+    cost); a time that is not a number of seconds is one line naming ``where``."""
+    total = 0.0
+    for r in rows:
+        if r.get("kind") != "epoch" or float(r.get("step") or 0) > step:
+            continue
+        try:
+            seconds = float(r.get("elapsed_s") or "nan")
+        except ValueError:
+            seconds = float("nan")
+        if not (np.isfinite(seconds) and seconds >= 0):
+            raise ConfigError(f"{where}: elapsed_s {r.get('elapsed_s')!r} at step {r.get('step')} is not a number "
+                              "of seconds")
+        total += seconds
+    return total
 
 
 def read_metrics(run_dir: Path) -> list[dict[str, str]]:

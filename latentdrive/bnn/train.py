@@ -44,7 +44,14 @@ from latentdrive.bnn.evaluate import VAL_KEYS, evaluate_bnn
 from latentdrive.bnn.losses import step_losses
 from latentdrive.bnn.prefetch import prefetch
 from latentdrive.bnn.resume import CHECKPOINT_NAME, check_run_dir, saved_configs
-from latentdrive.bnn.runlog import Meter, metrics_log, peak_rss_mb, write_metrics
+from latentdrive.bnn.runlog import (
+    METRICS_NAME,
+    Meter,
+    logged_seconds,
+    metrics_log,
+    peak_rss_mb,
+    write_metrics,
+)
 from latentdrive.bnn.train_config import BNNTrainConfig
 from latentdrive.config import config_hash, validate
 from latentdrive.fileio import atomic_write_text
@@ -89,7 +96,8 @@ def train_bnn(
     steps_per_epoch: int | None = None,
     observation: dict[str, Any] | None = None,
 ) -> dict[str, float]:
-    """Train a :class:`BottleneckNetwork` and return the final epoch's metrics.
+    """Train a :class:`BottleneckNetwork` and return the final epoch's metrics, with
+    ``resumed_s``: the seconds of the epochs a resumed run had logged before it resumed.
 
     ``train_batches_fn(epoch)`` yields the :class:`BNNBatch` es of global epoch ``epoch``
     (0-based; ``cfg.phase(epoch)`` tells its phase; mixed-phase batches should hold every
@@ -197,6 +205,7 @@ def _train(
         best = -math.inf
         last: dict[str, float] = {}
         resumed = False
+        resumed_s = 0.0
         if resume and ckpt.exists():
             info = load_checkpoint(
                 ckpt, model, optimizer,
@@ -208,6 +217,7 @@ def _train(
                     [info.extra_tensors[f"cuda_rng_{i}"] for i in range(len(cuda_states))]
                 )
             start_epoch, step = info.epoch, info.step
+            resumed_s = logged_seconds(logged or [], step, run / METRICS_NAME)
             last = {k: float(v) for k, v in info.extra.get("metrics", {}).items()}
             best = float(info.extra.get("best_score", -math.inf))
             resumed = True
@@ -352,7 +362,9 @@ def _train(
                 )
         finally:
             log.close()
-    return last
+    # resumed_s: the epochs' seconds of the sessions this one resumed from, so that a run
+    # cut off and resumed reports what it cost (less what the cut-off session redid).
+    return {**last, "resumed_s": round(resumed_s, 2)}
 
 
 def load_trained_bottleneck(

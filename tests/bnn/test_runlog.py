@@ -26,3 +26,17 @@ def test_a_resumed_log_keeps_the_rows_up_to_its_checkpoint_and_appends(tmp_path:
     # A fresh start (no resume step) drops whatever rows it is given.
     RunLog(tmp_path, {"a.csv": cols}, "step", None, {"a.csv": rows}).close()
     assert read_log(tmp_path / "a.csv", columns=cols, key="step", what="log") == []
+
+
+def test_the_seconds_logged_before_a_step_add_up_its_epochs_and_refuse_what_is_not_time(tmp_path: Path) -> None:
+    import pytest
+
+    from latentdrive.bnn.runlog import logged_seconds
+    from latentdrive.config import ConfigError
+
+    rows = [{"kind": "epoch", "step": "4", "elapsed_s": "1.5"}, {"kind": "window", "step": "6", "elapsed_s": ""},
+            {"kind": "epoch", "step": "8", "elapsed_s": "2.5"}, {"kind": "epoch", "step": "12", "elapsed_s": "9"}]
+    assert logged_seconds(rows, 8, tmp_path) == 4.0 and logged_seconds(rows, 3, tmp_path) == 0.0
+    for bad in ("nan", "-1", "soon", ""):
+        with pytest.raises(ConfigError, match=r"elapsed_s .* at step 8 is not a number of seconds"):
+            logged_seconds([{**rows[2], "elapsed_s": bad}], 8, tmp_path)

@@ -290,7 +290,10 @@ def test_resume_continues_to_the_same_result(
     # Rows logged after the checkpoint (steps 9, 10) exist until the resume drops them.
     assert max(int(r["step"]) for r in _rows(run)) == 10
 
+    # What the interrupted session had done by its checkpoint is part of the run's cost.
+    before = sum(float(r["elapsed_s"]) for r in _rows(run) if r["kind"] == "epoch" and int(r["step"]) <= 8)
     resumed = train_bnn(cfg, MODEL, train_fn, val_fn, run, resume=True, progress=False)
+    assert resumed["resumed_s"] == round(before, 2) > 0 and full["resumed_s"] == 0
     for key in ("epoch", "step", "train_loss", "train_recon", "train_reg", "val_loss", "val_mmd",
                 "val_vehicle_recall", "val_vehicle_precision"):
         assert resumed[key] == full[key] or (np.isnan(resumed[key]) and np.isnan(full[key])), key
