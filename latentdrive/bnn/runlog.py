@@ -60,13 +60,14 @@ class Meter:
 
 def logged_seconds(rows: Sequence[Mapping[str, str]], step: int, where: Path) -> float:
     """Seconds the epochs logged up to ``step`` took (what a run resumed there had already
-    cost); a time that is not a number of seconds is one line naming ``where``."""
+    cost; a log from before times were kept counts none); a time that is not a number of
+    seconds is one line naming ``where``."""
     total = 0.0
     for r in rows:
-        if r.get("kind") != "epoch" or float(r.get("step") or 0) > step:
+        if r.get("kind") != "epoch" or float(r.get("step") or 0) > step or not r.get("elapsed_s"):
             continue
         try:
-            seconds = float(r.get("elapsed_s") or "nan")
+            seconds = float(r["elapsed_s"])
         except ValueError:
             seconds = float("nan")
         if not (np.isfinite(seconds) and seconds >= 0):
