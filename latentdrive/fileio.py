@@ -21,6 +21,7 @@ import contextlib
 import csv
 import io
 import json
+import math
 import os
 import re
 import stat
@@ -47,6 +48,7 @@ __all__ = [
     "read_log",
     "read_text",
     "reset_peak_rss",
+    "seconds_logged",
 ]
 
 #: Largest YAML config, preset or scenario spec read (1 MiB): real ones are a few KiB.
@@ -201,6 +203,21 @@ def read_json(path: str | Path, *, limit: int = MAX_JSON_BYTES, what: str = "JSO
 
 
 _COUNT = re.compile(r"[0-9]{1,18}")
+
+
+def seconds_logged(text: str, where: str, error: ErrorType = FileFormatError) -> float:
+    """A duration a log recorded (``elapsed_s``), in seconds: finite and at least 0; an empty
+    field (a log from before times were kept) is 0; anything else is one ``error`` line
+    naming ``where``."""
+    if not text:
+        return 0.0
+    try:
+        seconds = float(text)
+    except ValueError:
+        seconds = math.nan
+    if not (math.isfinite(seconds) and seconds >= 0):
+        raise error(f"{where}: elapsed_s {text!r} is not a number of seconds")
+    return seconds
 
 
 def read_log(path: str | Path, *, columns: Sequence[str], key: str, limit: int = MAX_LOG_BYTES,

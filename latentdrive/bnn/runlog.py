@@ -16,7 +16,7 @@ import numpy as np
 
 from latentdrive.bnn.evaluate import VAL_KEYS
 from latentdrive.config import ConfigError
-from latentdrive.fileio import atomic_write_text, read_log
+from latentdrive.fileio import atomic_write_text, read_log, seconds_logged
 
 __all__ = ["METRICS_NAME", "METRIC_COLUMNS", "Meter", "RunLog", "logged_seconds", "metrics_log", "peak_rss_mb",
            "read_metrics", "write_metrics"]
@@ -62,19 +62,8 @@ def logged_seconds(rows: Sequence[Mapping[str, str]], step: int, where: Path) ->
     """Seconds the epochs logged up to ``step`` took (what a run resumed there had already
     cost; a log from before times were kept counts none); a time that is not a number of
     seconds is one line naming ``where``."""
-    total = 0.0
-    for r in rows:
-        if r.get("kind") != "epoch" or float(r.get("step") or 0) > step or not r.get("elapsed_s"):
-            continue
-        try:
-            seconds = float(r["elapsed_s"])
-        except ValueError:
-            seconds = float("nan")
-        if not (np.isfinite(seconds) and seconds >= 0):
-            raise ConfigError(f"{where}: elapsed_s {r.get('elapsed_s')!r} at step {r.get('step')} is not a number "
-                              "of seconds")
-        total += seconds
-    return total
+    return sum(seconds_logged(r.get("elapsed_s") or "", f"{where} at step {r.get('step')}", ConfigError)
+               for r in rows if r.get("kind") == "epoch" and float(r.get("step") or 0) <= step)
 
 
 def read_metrics(run_dir: Path) -> list[dict[str, str]]:

@@ -63,8 +63,8 @@ def _policy_class(train: Mapping[str, Any]) -> str:
     """``policy:<mode>``, then what changes the time per agent-transition several-fold where it
     differs from the defaults: the map reader (the objects reader learns several times as fast
     per update as the convolutional one), DAgger's planner labels, the updates per
-    agent-transition, the batch and a precision set other than ``auto``. A study measured with other such settings leaves the
-    class unmeasured rather than lending its times."""
+    agent-transition, the batch and a precision set other than ``auto``. A study measured
+    with other such settings leaves the class unmeasured rather than lending its times."""
     parts = [f"policy:{train['mode']}"]
     reader = (train.get("vfan") or {}).get("reader", VFANConfig.model_fields["reader"].default)
     if reader != VFANConfig.model_fields["reader"].default:

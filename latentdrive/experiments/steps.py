@@ -63,7 +63,8 @@ def run_bnn(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path)
                                int(config["latent_dim"]), channels=tuple(config["channels"]),
                                val_fraction=float(config["val_fraction"]), resume=True, progress=False,
                                model=config.get("model"))
-    return {k: float(v) for k, v in metrics.items()}
+    resumed = metrics.pop("resumed_s", 0.0)
+    return {**{k: float(v) for k, v in metrics.items()}, RESUMED: float(resumed)}
 
 
 def _one_thread() -> None:

@@ -51,8 +51,9 @@ def _relative(t: dict[str, Any]) -> str:
     return f"{100 * rel:+.0f}% [{'-∞' if lo is None else f'{100 * lo:+.0f}'}, {_signed(hi)}]"
 
 
-def _signed(v: float | None) -> str:
-    return "–" if v is None else f"{100 * v:+.0f}"
+def _signed(v: float | None, digits: int = 0) -> str:
+    """A share in signed percent (points), ``–`` where undefined."""
+    return "–" if v is None else f"{100 * v:+.{digits}f}"
 
 
 def _table(header: list[str], rows: list[list[str]]) -> list[str]:
@@ -152,11 +153,7 @@ def _points(t: dict[str, Any]) -> str:
     """A paired test's difference in percentage points with its interval."""
     if t["difference"] is None:
         return "–"
-    return f"{100 * t['difference']:+.1f} [{_signed_points(t['lo'])}, {_signed_points(t['hi'])}]"
-
-
-def _signed_points(v: float | None) -> str:
-    return "–" if v is None else f"{100 * v:+.1f}"
+    return f"{_signed(t['difference'], 1)} [{_signed(t['lo'], 1)}, {_signed(t['hi'], 1)}]"
 
 
 def _significant(t: dict[str, Any], fewer: bool, alpha: float = 0.05) -> bool:

@@ -294,10 +294,10 @@ class Learner:
         available once it holds ``min(steps, buffer_size)`` transitions (its arrays are
         reserved whole and fill as the run goes: without this a run fails hours in, or
         drives the machine into swap). Runs going at once are not counted together."""
-        need, have = self.replay.nbytes_at(min(self.cfg.steps, self.replay.capacity)), available_memory()
+        held = min(self.cfg.steps, self.replay.capacity)
+        need, have = self.replay.nbytes_at(held), available_memory()
         if have is not None and need > have:
-            raise ConfigError(f"the replay would take {need / 2**30:.1f} GiB at "
-                              f"{min(self.cfg.steps, self.replay.capacity):,} transitions (dqn.buffer_size "
+            raise ConfigError(f"the replay would take {need / 2**30:.1f} GiB at {held:,} transitions (dqn.buffer_size "
                               f"{self.replay.capacity:,}) and {have / 2**30:.1f} GiB of memory is available: lower "
                               "dqn.buffer_size, or the observation's size (vfan.objects_k, observation.frames)")
 

@@ -12,7 +12,6 @@ experience per segment and nothing in correctness.
 
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
@@ -26,6 +25,7 @@ from latentdrive.config import ConfigError
 from latentdrive.evaluate.policies import reference_policy
 from latentdrive.evaluate.report import policy_report
 from latentdrive.evaluate.run import evaluate_policy
+from latentdrive.fileio import seconds_logged
 from latentdrive.models.vfan import QNetwork
 from latentdrive.outcome import EpisodeOutcome
 from latentdrive.rl.config import PolicyTrainConfig, check_mission_pays
@@ -173,15 +173,10 @@ def _elapsed_before(root: Path, metrics: list[dict[str, str]], transitions: int)
     run's training time, less what a killed session did after its last checkpoint (the
     resumption redoes it)."""
     kept = [r for r in metrics if int(r["transitions"]) <= transitions]
-    text = kept[-1].get("elapsed_s", "") if kept else ""
-    try:
-        seconds = float(text) if text else 0.0
-    except ValueError:
-        seconds = math.nan
-    if not (math.isfinite(seconds) and seconds >= 0):
-        raise ConfigError(f"{root / METRICS}: elapsed_s {text!r} at {kept[-1]['transitions']} "
-                          "agent-transitions is not a number of seconds")
-    return seconds
+    if not kept:
+        return 0.0
+    return seconds_logged(kept[-1].get("elapsed_s", ""),
+                          f"{root / METRICS} at {kept[-1]['transitions']} agent-transitions", ConfigError)
 
 
 def _run(cfg: PolicyTrainConfig, root: Path, net: QNetwork, learner: Learner, vec: Any, segment: int,

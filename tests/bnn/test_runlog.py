@@ -40,5 +40,5 @@ def test_the_seconds_logged_before_a_step_add_up_its_epochs_and_refuse_what_is_n
     # A log written before times were kept has none to add.
     assert logged_seconds([{"kind": "epoch", "step": "8"}, {**rows[2], "elapsed_s": ""}], 8, tmp_path) == 0.0
     for bad in ("nan", "-1", "soon"):
-        with pytest.raises(ConfigError, match=r"elapsed_s .* at step 8 is not a number of seconds"):
+        with pytest.raises(ConfigError, match=r"at step 8: elapsed_s .* is not a number of seconds"):
             logged_seconds([{**rows[2], "elapsed_s": bad}], 8, tmp_path)
