@@ -43,6 +43,7 @@ from latentdrive.data.plan import (
 )
 from latentdrive.data.policies import episode_policy
 from latentdrive.data.shards import (
+    COLLECT_SECONDS,
     DatasetError,
     array_digest,
     quantize,
@@ -180,6 +181,9 @@ class CollectSummary:
     samples_written: int
     samples_total: int
     seconds: float
+    #: Wall-clock seconds that earlier, interrupted runs spent on the shards this one kept
+    #: (0 for a new dataset; the manifest's record, up to each run's last shard).
+    resumed_s: float = 0.0
 
     @property
     def samples_per_s(self) -> float:
@@ -221,22 +225,25 @@ def collect(cfg: CollectConfig, out_dir: str | Path, progress: bool = True) -> C
         if skipped:
             say(f"{root}: {skipped} of {len(units)} shards already collected")
         jobs = [_Job(cfg, env_cfgs[u.scenario], u, root, chash) for u in todo]
+        resumed = float(manifest.get(COLLECT_SECONDS, 0.0))
         t0 = time.perf_counter()
         written = 0
         for k, res in enumerate(_execute(jobs, cfg.workers), start=1):
+            wall = time.perf_counter() - t0
             manifest["shards"][res.name] = {
                 "samples": res.samples, "sha256": res.sha256, "bytes": res.bytes,
                 "content_sha256": res.content_sha256, "episode_samples": res.episode_samples,
                 "episode_policies": res.episode_policies,
             }
+            manifest[COLLECT_SECONDS] = round(resumed + wall, 3)
             write_manifest(root, manifest)
             written += res.samples
-            wall = time.perf_counter() - t0
             say(f"[{skipped + k}/{len(units)}] {res.name}: {res.samples} samples, {res.bytes / 2**20:.1f} MiB, "
                 f"{res.samples / max(res.seconds, 1e-9):.0f} samples/s in its worker, "
                 f"{written / max(wall, 1e-9):.0f} samples/s overall")
         total = sum(int(e["samples"]) for e in manifest["shards"].values())
-        summary = CollectSummary(root, len(units), len(todo), skipped, written, total, time.perf_counter() - t0)
+        summary = CollectSummary(root, len(units), len(todo), skipped, written, total, time.perf_counter() - t0,
+                                 resumed_s=resumed)
         say(f"{root}: {total} samples in {len(units)} shards ({written} new in {summary.seconds:.1f} s)")
         return summary
 

@@ -30,6 +30,7 @@ import hashlib
 import io
 import itertools
 import json
+import math
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -42,6 +43,7 @@ from latentdrive.errors import LatentDriveError
 from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_bytes, confined, read_bytes, read_json
 
 __all__ = [
+    "COLLECT_SECONDS",
     "FORMAT",
     "FORMAT_VERSION",
     "IMAGE_KEYS",
@@ -183,6 +185,10 @@ def write_manifest(root: Path, manifest: Mapping[str, Any]) -> None:
     atomic_write_bytes(root / MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode())
 
 
+#: The manifest's record of the wall-clock seconds its collection runs have spent so far
+#: (up to the last shard each wrote): what a resumed collection had already cost.
+COLLECT_SECONDS = "collect_seconds"
+
 _MANIFEST_KEYS = ("format", "version", "config_hash", "config", "scenarios", "env_configs",
                   "sample_shape", "units", "shards")
 
@@ -243,6 +249,10 @@ def _check_manifest_types(m: dict[str, Any]) -> None:
         raise TypeError("sample_shape must be 4 positive integers")
     if not isinstance(m["units"], list) or not isinstance(m["shards"], dict):
         raise TypeError("units must be a list and shards a mapping")
+    if COLLECT_SECONDS in m:  # absent from manifests written before it was kept
+        seconds = m[COLLECT_SECONDS]
+        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 0 <= seconds < math.inf:
+            raise ValueError(f"{COLLECT_SECONDS} must be a number of seconds, got {seconds!r}")
     episodes: dict[str, int] = {}
     spans = []
     for i, u in enumerate(m["units"]):

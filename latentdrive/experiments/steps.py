@@ -55,7 +55,8 @@ def _quiet(_: str) -> None:
 
 def run_dataset(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:
     summary = collect(validate(CollectConfig, config["collect"]), folder / "data", progress=False)
-    return {"samples": len(ShardDataset(folder / "data")), "collected_s": round(float(summary.seconds), 1)}
+    return {"samples": len(ShardDataset(folder / "data")), "collected_s": round(float(summary.seconds), 1),
+            RESUMED: float(summary.resumed_s)}
 
 
 def run_bnn(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: Path) -> dict[str, Any]:

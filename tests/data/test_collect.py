@@ -19,6 +19,7 @@ from latentdrive.data.collect import (
 )
 from latentdrive.data.policies import episode_policy
 from latentdrive.data.shards import (
+    COLLECT_SECONDS,
     MANIFEST,
     QUANT_MAX_ERROR,
     SHARD_KEYS,
@@ -158,6 +159,33 @@ def test_a_dataset_collected_before_later_settings_existed_still_resumes(dataset
     (dataset_copy / MANIFEST).write_text(json.dumps(m))
     with pytest.raises(DatasetError, match="different env_configs"):
         collect(tiny_config(), dataset_copy, progress=False)
+
+
+def test_a_resumed_collection_reports_what_earlier_runs_spent(dataset_copy: Path) -> None:
+    recorded = manifest(dataset_copy)[COLLECT_SECONDS]
+    assert recorded > 0  # the fixture's collection kept its time
+    victim = sorted(content(dataset_copy))[1]
+    (dataset_copy / victim).unlink()
+    summary = collect(tiny_config(), dataset_copy, progress=False)
+    assert summary.shards_written == 1 and summary.resumed_s == recorded
+    # The record grows by this run's time up to its last shard.
+    assert recorded < manifest(dataset_copy)[COLLECT_SECONDS] <= recorded + summary.seconds + 1e-3
+    # A manifest written before the time was kept resumes as if nothing had been spent.
+    m = manifest(dataset_copy)
+    del m[COLLECT_SECONDS]
+    (dataset_copy / MANIFEST).write_text(json.dumps(m))
+    assert collect(tiny_config(), dataset_copy, progress=False).resumed_s == 0
+
+
+@pytest.mark.parametrize("bad", [-1.0, "12", True, None])
+def test_a_manifest_whose_collection_time_is_not_seconds_is_refused(dataset_copy: Path, bad: object) -> None:
+    m = manifest(dataset_copy)
+    m[COLLECT_SECONDS] = bad
+    (dataset_copy / MANIFEST).write_text(json.dumps(m))
+    before = (dataset_copy / MANIFEST).read_bytes()
+    with pytest.raises(DatasetError, match=f"manifest is corrupt \\({COLLECT_SECONDS} must be a number of seconds"):
+        collect(tiny_config(), dataset_copy, progress=False)
+    assert (dataset_copy / MANIFEST).read_bytes() == before
 
 
 def test_resume_redoes_a_shard_whose_file_changed(dataset_copy: Path) -> None:
