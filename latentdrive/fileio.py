@@ -49,6 +49,7 @@ __all__ = [
     "read_text",
     "reset_peak_rss",
     "seconds_logged",
+    "seconds_recorded",
 ]
 
 #: Largest YAML config, preset or scenario spec read (1 MiB): real ones are a few KiB.
@@ -206,17 +207,36 @@ _COUNT = re.compile(r"[0-9]{1,18}")
 
 
 def seconds_logged(text: str, where: str, error: ErrorType = FileFormatError) -> float:
-    """A duration a log recorded (``elapsed_s``), in seconds: finite and at least 0; an empty
-    field (a log from before times were kept) is 0; anything else is one ``error`` line
-    naming ``where``."""
+    """A duration a CSV log recorded (``elapsed_s``), in seconds: finite and at least 0; an
+    empty field (a log from before times were kept) is 0; anything else is one ``error``
+    line naming ``where``."""
     if not text:
         return 0.0
     try:
         seconds = float(text)
     except ValueError:
         seconds = math.nan
+    return _seconds(seconds, text, where, error, "elapsed_s")
+
+
+def seconds_recorded(value: object, where: str, error: ErrorType = FileFormatError, *, name: str) -> float:
+    """A duration a JSON file recorded under ``name``: a number of seconds, finite and at
+    least 0; anything else (a string, ``true``, an integer beyond float's range) is one
+    ``error`` line naming ``where``."""
+    seconds = math.nan
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        try:
+            seconds = float(value)
+        except OverflowError:
+            seconds = math.inf
+    return _seconds(seconds, value, where, error, name)
+
+
+def _seconds(seconds: float, recorded: object, where: str, error: ErrorType, name: str) -> float:
     if not (math.isfinite(seconds) and seconds >= 0):
-        raise error(f"{where}: elapsed_s {text!r} is not a number of seconds")
+        shown = repr(recorded)
+        shown = shown if len(shown) <= 40 else shown[:37] + "..."
+        raise error(f"{where}: {name} {shown} is not a number of seconds")
     return seconds
 
 

@@ -63,6 +63,7 @@ DATASETS: dict[str, Callable[[Path], object]] = {
     "ds_float_episode": _manifest_edit(_unit0("first_episode", 1.5)),
     "ds_huge_episode": _manifest_edit(_unit0("first_episode", 10**30)),
     "ds_units_not_list": _manifest_edit(lambda m: m.update(units={"a": 1})),
+    "ds_huge_shard_time": _manifest_edit(lambda m: next(iter(m["shards"].values())).update(wall_s=10**400)),
     "ds_truncated_manifest": lambda ds: (ds / "manifest.json").write_bytes((ds / "manifest.json").read_bytes()[:100]),
     "ds_binary_manifest": lambda ds: (ds / "manifest.json").write_bytes(bytes(range(256))),
 }
@@ -164,6 +165,7 @@ CASES = [
     ("binary-manifest", "train-bnn {w}/ds_binary_manifest {w}/new_run", "not UTF-8"),
     ("dataset-is-a-file", "train-bnn {w}/a_file {w}/new_run", "manifest"),
     ("unit-huge-episode", "train-bnn {w}/ds_huge_episode {w}/new_run", "first_episode must be an integer >= 0 and < 2**62"),
+    ("shard-time-beyond-float", "train-bnn {w}/ds_huge_shard_time {w}/new_run", f"wall_s {str(10**400)[:37]}... is not a number of seconds"),
     ("val-fraction-out-of-range", "train-bnn {w}/ds {w}/new_run --val-fraction 1.5", "--val-fraction"),
     ("val-fraction-zero", "train-bnn {w}/ds {w}/new_run --val-fraction 0", "--val-fraction) must be in (0, 1)"),
     ("nothing-to-hold-out", "train-bnn {w}/ds_one_episode {w}/new_run", "no validation episodes at val_fraction 0.15"),

@@ -43,7 +43,7 @@ from latentdrive.data.plan import (
 )
 from latentdrive.data.policies import episode_policy
 from latentdrive.data.shards import (
-    COLLECT_SECONDS,
+    SHARD_WALL,
     DatasetError,
     array_digest,
     quantize,
@@ -181,8 +181,8 @@ class CollectSummary:
     samples_written: int
     samples_total: int
     seconds: float
-    #: Wall-clock seconds that earlier, interrupted runs spent on the shards this one kept
-    #: (0 for a new dataset; the manifest's record, up to each run's last shard).
+    #: Wall-clock seconds that earlier runs spent on the shards this one kept (0 for a new
+    #: dataset; the sum of those shards' recorded shares, so a shard redone counts once).
     resumed_s: float = 0.0
 
     @property
@@ -225,17 +225,18 @@ def collect(cfg: CollectConfig, out_dir: str | Path, progress: bool = True) -> C
         if skipped:
             say(f"{root}: {skipped} of {len(units)} shards already collected")
         jobs = [_Job(cfg, env_cfgs[u.scenario], u, root, chash) for u in todo]
-        resumed = float(manifest.get(COLLECT_SECONDS, 0.0))
+        # Shards of a manifest written before their time was kept count none.
+        resumed = sum(float(e.get(SHARD_WALL, 0.0)) for e in manifest["shards"].values())
         t0 = time.perf_counter()
-        written = 0
+        written, last = 0, 0.0
         for k, res in enumerate(_execute(jobs, cfg.workers), start=1):
             wall = time.perf_counter() - t0
             manifest["shards"][res.name] = {
                 "samples": res.samples, "sha256": res.sha256, "bytes": res.bytes,
                 "content_sha256": res.content_sha256, "episode_samples": res.episode_samples,
-                "episode_policies": res.episode_policies,
+                "episode_policies": res.episode_policies, SHARD_WALL: round(wall - last, 3),
             }
-            manifest[COLLECT_SECONDS] = round(resumed + wall, 3)
+            last = wall
             write_manifest(root, manifest)
             written += res.samples
             say(f"[{skipped + k}/{len(units)}] {res.name}: {res.samples} samples, {res.bytes / 2**20:.1f} MiB, "

@@ -30,7 +30,6 @@ import hashlib
 import io
 import itertools
 import json
-import math
 import zipfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -40,10 +39,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from latentdrive.errors import LatentDriveError
-from latentdrive.fileio import MAX_JSON_BYTES, atomic_write_bytes, confined, read_bytes, read_json
+from latentdrive.fileio import (
+    MAX_JSON_BYTES,
+    atomic_write_bytes,
+    confined,
+    read_bytes,
+    read_json,
+    seconds_recorded,
+)
 
 __all__ = [
-    "COLLECT_SECONDS",
     "FORMAT",
     "FORMAT_VERSION",
     "IMAGE_KEYS",
@@ -51,6 +56,7 @@ __all__ = [
     "MANIFEST",
     "QUANT_MAX_ERROR",
     "SHARD_KEYS",
+    "SHARD_WALL",
     "DatasetError",
     "array_digest",
     "dequantize",
@@ -185,9 +191,9 @@ def write_manifest(root: Path, manifest: Mapping[str, Any]) -> None:
     atomic_write_bytes(root / MANIFEST, (json.dumps(manifest, indent=1) + "\n").encode())
 
 
-#: The manifest's record of the wall-clock seconds its collection runs have spent so far
-#: (up to the last shard each wrote): what a resumed collection had already cost.
-COLLECT_SECONDS = "collect_seconds"
+#: A shard entry's share of its collection run's wall-clock seconds (the time since the run
+#: started or wrote its previous shard): what a resumed collection had already spent on it.
+SHARD_WALL = "wall_s"
 
 _MANIFEST_KEYS = ("format", "version", "config_hash", "config", "scenarios", "env_configs",
                   "sample_shape", "units", "shards")
@@ -249,10 +255,6 @@ def _check_manifest_types(m: dict[str, Any]) -> None:
         raise TypeError("sample_shape must be 4 positive integers")
     if not isinstance(m["units"], list) or not isinstance(m["shards"], dict):
         raise TypeError("units must be a list and shards a mapping")
-    if COLLECT_SECONDS in m:  # absent from manifests written before it was kept
-        seconds = m[COLLECT_SECONDS]
-        if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not 0 <= seconds < math.inf:
-            raise ValueError(f"{COLLECT_SECONDS} must be a number of seconds, got {seconds!r}")
     episodes: dict[str, int] = {}
     spans = []
     for i, u in enumerate(m["units"]):
@@ -287,5 +289,7 @@ def _check_manifest_types(m: dict[str, Any]) -> None:
         if total != _count(entry["samples"], f"shard {name}: samples"):
             raise ValueError(f"shard {name}: episode sample counts do not add up")
         _count(entry["bytes"], f"shard {name}: bytes")
+        if SHARD_WALL in entry:  # absent from manifests written before it was kept
+            seconds_recorded(entry[SHARD_WALL], f"shard {name}", ValueError, name=SHARD_WALL)
         if not isinstance(entry["sha256"], str):
             raise TypeError(f"shard {name}: sha256 must be a string")

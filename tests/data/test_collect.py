@@ -19,10 +19,10 @@ from latentdrive.data.collect import (
 )
 from latentdrive.data.policies import episode_policy
 from latentdrive.data.shards import (
-    COLLECT_SECONDS,
     MANIFEST,
     QUANT_MAX_ERROR,
     SHARD_KEYS,
+    SHARD_WALL,
     DatasetError,
     array_digest,
     dequantize,
@@ -161,29 +161,43 @@ def test_a_dataset_collected_before_later_settings_existed_still_resumes(dataset
         collect(tiny_config(), dataset_copy, progress=False)
 
 
-def test_a_resumed_collection_reports_what_earlier_runs_spent(dataset_copy: Path) -> None:
-    recorded = manifest(dataset_copy)[COLLECT_SECONDS]
-    assert recorded > 0  # the fixture's collection kept its time
-    victim = sorted(content(dataset_copy))[1]
+def _recorded(root: Path) -> dict[str, float]:
+    return {name: e[SHARD_WALL] for name, e in manifest(root)["shards"].items()}
+
+
+def test_a_resumed_collection_reports_what_earlier_runs_spent_on_what_it_kept(dataset_copy: Path) -> None:
+    before = _recorded(dataset_copy)
+    assert all(s > 0 for s in before.values())  # the fixture's collection kept each shard's share
+    victim = sorted(before)[1]
     (dataset_copy / victim).unlink()
     summary = collect(tiny_config(), dataset_copy, progress=False)
-    assert summary.shards_written == 1 and summary.resumed_s == recorded
-    # The record grows by this run's time up to its last shard.
-    assert recorded < manifest(dataset_copy)[COLLECT_SECONDS] <= recorded + summary.seconds + 1e-3
-    # A manifest written before the time was kept resumes as if nothing had been spent.
+    # The deleted shard's earlier time is not counted: it was redone, and its new share replaces it.
+    assert summary.shards_written == 1
+    assert summary.resumed_s == pytest.approx(sum(s for name, s in before.items() if name != victim))
+    after = _recorded(dataset_copy)
+    assert {n: s for n, s in after.items() if n != victim} == {n: s for n, s in before.items() if n != victim}
+    assert 0 < after[victim] <= summary.seconds + 1e-3
+    # A rerun of a complete dataset reports all of it and changes no record.
+    again = collect(tiny_config(), dataset_copy, progress=False)
+    assert again.shards_written == 0 and again.resumed_s == pytest.approx(sum(after.values()))
+    assert _recorded(dataset_copy) == after
+    # A manifest written before the times were kept resumes as if nothing had been spent.
     m = manifest(dataset_copy)
-    del m[COLLECT_SECONDS]
+    for entry in m["shards"].values():
+        del entry[SHARD_WALL]
     (dataset_copy / MANIFEST).write_text(json.dumps(m))
     assert collect(tiny_config(), dataset_copy, progress=False).resumed_s == 0
 
 
-@pytest.mark.parametrize("bad", [-1.0, "12", True, None])
-def test_a_manifest_whose_collection_time_is_not_seconds_is_refused(dataset_copy: Path, bad: object) -> None:
+@pytest.mark.parametrize("bad", [-1.0, "12", True, None, float("nan"), float("inf"), 10**400])
+def test_a_manifest_whose_shard_time_is_not_seconds_is_refused(dataset_copy: Path, bad: object) -> None:
     m = manifest(dataset_copy)
-    m[COLLECT_SECONDS] = bad
+    name = sorted(m["shards"])[0]
+    m["shards"][name][SHARD_WALL] = bad
     (dataset_copy / MANIFEST).write_text(json.dumps(m))
     before = (dataset_copy / MANIFEST).read_bytes()
-    with pytest.raises(DatasetError, match=f"manifest is corrupt \\({COLLECT_SECONDS} must be a number of seconds"):
+    with pytest.raises(DatasetError, match=f"manifest is corrupt \\(shard {name}: {SHARD_WALL} .* is not a number of "
+                                           "seconds\\)$"):
         collect(tiny_config(), dataset_copy, progress=False)
     assert (dataset_copy / MANIFEST).read_bytes() == before
 
@@ -218,6 +232,10 @@ def test_same_config_gives_identical_shards_with_one_or_two_workers(collected: P
     summary = collect(tiny_config(workers=2), tmp_path / "w2", progress=False)
     assert summary.shards_written == len(content(collected))
     assert content(tmp_path / "w2") == content(collected)
+    # A new dataset resumed nothing; each shard's share is the main process's wall time
+    # since the previous shard arrived, so they add up to at most the run's.
+    assert summary.resumed_s == 0
+    assert 0 < sum(_recorded(tmp_path / "w2").values()) <= summary.seconds + 1e-3
     collect(tiny_config(), tmp_path / "w1", progress=False)
     assert content(tmp_path / "w1") == content(collected)
 
