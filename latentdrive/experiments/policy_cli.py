@@ -97,20 +97,31 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     from latentdrive.scenarios import SCENARIOS, ScenarioSpec
     from latentdrive.seeds import MAX_ENVS, eval_reset_seed
 
-    runs = [args.run] if args.run else []
+    # A run's name in the tables, the JSON and the GIF's panels: its LABEL, or its path.
+    names: dict[str, str] = {}
+    if args.run:
+        label, run = _labelled(args.run)
+        names[run] = label or run
     if args.policy is None:  # every reference the backend can run
         references = [p for p in REFERENCE_POLICIES if args.backend == "fast" or p not in SIMULATOR_POLICIES]
     else:
         references = [] if args.policy in ("", "none") else _split(args.policy)
     if args.compare:
-        if not runs:
+        if not names:
             raise ConfigError("--compare needs a RUN to compare with")
+        label, second = _labelled(args.compare)
         # A run directory wins over a reference policy of the same name.
-        if args.compare in REFERENCE_POLICIES and not (Path(args.compare) / "config.json").exists():
-            if args.compare not in references:
-                references.append(args.compare)
+        if label is None and second in REFERENCE_POLICIES and not (Path(second) / "config.json").exists():
+            if second not in references:
+                references.append(second)
+            compared = second
+        elif second in names:  # the run compared with itself: one policy, one name
+            if label not in (None, names[second]):
+                raise ConfigError(f"--compare {args.compare}: the RUN itself, under another label")
+            compared = names[second]
         else:
-            runs.append(args.compare)
+            names[second] = compared = label or second
+    runs = list(names)
     configs = [read_run_config(r) for r in runs]  # fail before any work
     for run, c in zip(runs, configs, strict=True):
         moved = changed_scenarios(c)
@@ -139,9 +150,12 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise ConfigError(f"--gif-episode must be in [0, {first_slot}): the evaluation's first environment plays "
                           f"{first_slot} of its episodes (--episodes {args.episodes}, --envs {args.envs}), "
                           f"got {args.gif_episode}")
-    clash = sorted(set(runs) & set(references))
+    if len(set(names.values())) < len(names):
+        raise ConfigError(f"the RUN and --compare share the name {next(iter(names.values()))!r}: label them apart")
+    clash = sorted(set(names.values()) & set(references))
     if clash:
-        raise ConfigError(f"{clash[0]!r} names both a run and a reference policy; give the run as ./{clash[0]}")
+        raise ConfigError(f"{clash[0]!r} names both a run and a reference policy; give the run as ./{clash[0]} "
+                          "or another LABEL")
     for flag, out in (("--json", args.json), ("--gif", args.gif)):
         problem = output_problem(out) if out else None
         if problem:
@@ -172,7 +186,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         raise ConfigError("--set planner.* given, but the planner ('plan') is not evaluated")
     device = resolve_device(args.device)
     total = args.episodes * len(scenarios) * (len(runs) + len(references))
-    makers = policy_makers(runs, references, eval_set, device)
+    makers = {names.get(k, k): make for k, make in policy_makers(runs, references, eval_set, device).items()}
     with tqdm(total=total, unit="ep", disable=args.quiet, desc="evaluate", dynamic_ncols=True) as bar:
         reports, outcomes = evaluate_many(makers, eval_set, progress=bar.update)
     print(f"{args.episodes} evaluation episodes per scenario ({eval_set.envs} envs, reset seed "
@@ -188,24 +202,27 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.compare:
         from latentdrive.evaluate.report import compare, tests_json
 
-        a, b = runs[0], args.compare
+        a, b = names[runs[0]], compared
         tests = compare(outcomes[a], outcomes[b])  # once: its intervals are bootstrapped
         comparison = tests_json(tests)
         print(f"paired on the same episodes: A = {a}, B = {b}")
         print(format_compare(tests, names=("A", "B")))
     if args.json:
-        head = runs[0] if runs else references[0]
+        head = names[runs[0]] if runs else references[0]
         doc: dict[str, Any] = {
             **reports[head].as_dict(), "policy": head,
-            "config": {"evaluation": eval_set.as_dict(), "runs": {r: c["train"] for r, c in zip(runs, configs, strict=True)}},
+            "config": {"evaluation": eval_set.as_dict(),
+                       "runs": {names[r]: c["train"] for r, c in zip(runs, configs, strict=True)}},
             "policies": {name: rep.as_dict() for name, rep in reports.items()},
         }
+        if any(name != r for r, name in names.items()):
+            doc["config"]["paths"] = {name: r for r, name in names.items()}
         if args.causes:
             from latentdrive.evaluate.report import cause_counts
 
             doc["causes"] = {name: cause_counts(o) for name, o in outcomes.items()}
         if comparison is not None:
-            doc["compare"] = {"a": runs[0], "b": args.compare, "tests": comparison}
+            doc["compare"] = {"a": names[runs[0]], "b": compared, "tests": comparison}
         from latentdrive.evaluate.episodes import outcome_block
 
         # Per-episode outcomes let `latentdrive compare` pair this file with another later.
@@ -218,7 +235,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         elif runs:
             net, _ = load_policy_network(runs[0], device)
             path = save_policy_gif(args.gif, net, greedy_policy(net, device), scenarios[0], eval_set,
-                                   f"{runs[0]} ({net.mode}) on {scenarios[0]}", device, args.gif_episode)
+                                   f"{names[runs[0]]} ({net.mode}) on {scenarios[0]}", device, args.gif_episode)
         else:
             path = save_policy_gif(args.gif, None, makers[references[0]], scenarios[0], eval_set,
                                    f"{references[0]} on {scenarios[0]}", device, args.gif_episode)
@@ -341,7 +358,9 @@ def add_policy_parsers(sub: Any) -> None:
     s = sub.add_parser("evaluate", help="failure, crash and success rates of policies on held-out episodes",
                        description="Evaluate a trained run and the reference policies on the same held-out "
                        "episodes (seeds training never uses), per scenario and mixed, with 95% intervals.")
-    s.add_argument("run", nargs="?", default="", help="policy run directory (optional)")
+    s.add_argument("run", nargs="?", default="",
+                   help="policy run directory (optional), as RUN or LABEL=RUN: the name its rows, JSON entries and "
+                   "GIF panel show")
     s.add_argument("--policy", default=None,
                    help="reference policies to include, comma-separated, or 'none' (default: random, idle, stop, "
                    "rule and, on the fast backend, plan, the lookahead planner)")
@@ -352,7 +371,8 @@ def add_policy_parsers(sub: Any) -> None:
     s.add_argument("--seed-offset", type=int, default=0, help="another fixed evaluation set, disjoint from the default (default 0; training's own evaluation uses 1)")
     s.add_argument("--json", default="", help="write the results to this JSON file")
     s.add_argument("--compare", default="",
-                   help="a second run, or a reference policy name: paired differences on the same episodes and McNemar's exact test")
+                   help="a second run (RUN or LABEL=RUN), or a reference policy name: paired differences on the "
+                   "same episodes and McNemar's exact test")
     s.add_argument("--gif", default="", help="draw one episode of the first scenario to this GIF: the scene beside "
                    "the map the RUN (or the first reference) sees, or, with policies named by --compare or --policy "
                    "beside it, the same episode under each, side by side")

@@ -497,3 +497,32 @@ def test_an_episodes_label_says_how_it_ended():
     assert outcome_label(ended([False, False], [True, True])) == "success: all 2 AVs arrived"
     assert outcome_label(ended([False, False], [False, False], True)) == (
         "failed: time ran out (0 of 2 AVs arrived, HVs crashed among themselves)")
+
+
+def test_evaluate_names_runs_by_their_labels(tmp_path, capsys, raw_run, monkeypatch):
+    from latentdrive.experiments import policy
+
+    out = tmp_path / "e.json"
+    drawn: list[list[str]] = []
+    monkeypatch.setattr(policy, "save_policies_gif", lambda path, makers, *a: drawn.append(list(makers)) or path)
+    common = ["--scenarios", "intersection", "--episodes", "2", "--envs", "2", "-q"]
+    assert main(["evaluate", f"mine={raw_run}", "--compare", "stop", "--policy", "none", "--json", str(out),
+                 "--gif", str(tmp_path / "g.gif"), *common]) == 0
+    printed = capsys.readouterr().out
+    assert "paired on the same episodes: A = mine, B = stop" in printed
+    assert any(line.split()[:2] == ["mine", "intersection"] for line in printed.splitlines())
+    doc = json.loads(out.read_text())
+    assert doc["policy"] == "mine" and set(doc["policies"]) == {"mine", "stop"}
+    assert doc["compare"]["a"] == "mine" and doc["config"]["paths"] == {"mine": str(raw_run)}
+    assert set(doc["config"]["runs"]) == {"mine"} and set(doc["outcomes"]["policies"]) == {"mine", "stop"}
+    assert drawn == [["mine", "stop"]]  # the GIF's panels are titled by the same names
+    # Without labels nothing changes: runs are named by their paths.
+    assert main(["evaluate", str(raw_run), "--policy", "none", "--json", str(out), *common]) == 0
+    doc = json.loads(out.read_text())
+    assert set(doc["policies"]) == {str(raw_run)} and "paths" not in doc["config"]
+    # A label that names a reference, or the run itself under a second label, is refused.
+    _fails(capsys, ["evaluate", f"stop={raw_run}", "--policy", "stop", *common], "'stop' names both a run and a "
+           "reference policy", tmp_path)
+    _fails(capsys, ["evaluate", f"a={raw_run}", "--compare", f"b={raw_run}", *common], "the RUN itself, under another "
+           "label", tmp_path)
+    _fails(capsys, ["evaluate", f"={raw_run}", *common], "an empty label before '='", tmp_path)
