@@ -13,7 +13,7 @@ refused with its name.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +39,14 @@ class SeedEval:
     #: The ``--compare`` policy or run (None without one) and its paired tests per scenario.
     compare: str | None
     tests: dict[str, dict[str, Any]]
+    #: The folders of the policy and of the ``--compare`` run where they were given a label
+    #: (``evaluate LABEL=RUN``: ``config.paths``); a name without one is its own.
+    paths: dict[str, str] = field(default_factory=dict)
+
+    def folder(self, name: str) -> str:
+        """What policy ``name`` of this file is: the run folder it was read from, or the name
+        itself (a reference, or a run given by its path)."""
+        return self.paths.get(name, name)
 
 
 def _at(doc: object, *keys: str) -> Any:
@@ -90,14 +98,18 @@ def read_seed_eval(path: str | Path) -> SeedEval:
             _need(all(_number(_at(t, k)) for k in ("rate_b", "difference", "p_value")), path,
                   f"no paired test for {name}")
             tests[name] = t
-    return SeedEval(str(path), str(_at(doc, "policy")), ev, failure, compare, tests)
+    paths = _at(doc, "config", "paths") or {}
+    _need(isinstance(paths, dict) and all(isinstance(v, str) for v in paths.values()), path,
+          "config.paths is not a mapping of labels to run folders")
+    return SeedEval(str(path), str(_at(doc, "policy")), ev, failure, compare, tests, dict(paths))
 
 
 def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str, Any]:
     """Mean failure rates over ``evals`` (one per training seed) with intervals over seeds.
 
-    Returns ``{"evaluation", "policies", "compare", "compare_runs", "rows"}`` (``compare``:
-    the distinct B policies, sorted; ``compare_runs``: each seed's B, in the order given); ``rows[scenario]`` holds
+    Returns ``{"evaluation", "policies", "compare", "compare_runs", "paired", "rows"}``
+    (``compare``: the distinct B names, sorted; ``compare_runs``: each seed's B, in the order
+    given; ``paired``: each seed's B is a run of its own rather than one shared reference); ``rows[scenario]`` holds
     ``rates`` (per seed), ``mean``/``lo``/``hi`` (rliable, over seeds) and, with a comparison,
     ``compare_rates``, ``differences`` and ``p_values`` per seed and the mean difference
     with its interval. Raises :class:`ConfigError` when the files score different episodes
@@ -108,13 +120,15 @@ def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str,
     head = evals[0]
     seen: dict[str, str] = {}
     for e in evals:
-        for key in (str(Path(e.path).resolve()), f"policy {Path(e.policy).resolve()}"):
+        for key in (str(Path(e.path).resolve()), f"policy {Path(e.folder(e.policy)).resolve()}"):
             if key in seen:
                 raise ConfigError(f"{e.path}: the same {'policy' if key.startswith('policy ') else 'file'} as "
                                   f"{seen[key]}; give each training seed once")
             seen[key] = e.path
     compares = {e.compare for e in evals if e.compare is not None}
-    if len(compares) > 1 and compares & set(REFERENCE_POLICIES):
+    # Identity by folder: seeds whose runs share a label ("latent") are still each its own run.
+    compared = {e.folder(e.compare) for e in evals if e.compare is not None}
+    if len(compared) > 1 and compared & set(REFERENCE_POLICIES):
         # Each seed against its own run (raw seed k against latent seed k) is a pairing;
         # seeds against different reference drivers are not one comparison.
         raise ConfigError(f"the files compare against different policies ({', '.join(sorted(map(str, compares)))}); "
@@ -145,7 +159,7 @@ def aggregate_seeds(evals: Sequence[SeedEval], *, reps: int = 2000) -> dict[str,
                        difference={"mean": d["mean"], "lo": d["lo"], "hi": d["hi"]})
         rows[name] = row
     return {"evaluation": head.evaluation, "policies": [e.policy for e in evals], "compare": sorted(compares),
-            "compare_runs": [e.compare for e in evals], "rows": rows}
+            "compare_runs": [e.compare for e in evals], "paired": len(compared) > 1, "rows": rows}
 
 
 def _pct(x: float, sign: str = "") -> str:
@@ -169,7 +183,7 @@ def format_seeds(agg: dict[str, Any]) -> str:
     head = ["scenario", *[f"run {i + 1}" for i in range(n)], "mean [95% CI]"]
     if has_cmp:
         # One reference for every seed, or each seed against its own run (named in run order).
-        paired = len(agg["compare"]) > 1
+        paired = agg["paired"]
         b_head = f"B, runs 1..{n} = {', '.join(agg['compare_runs'])}" if paired else f"B = {agg['compare'][0]}"
         head += [b_head, "A−B, mean [95% CI]", "p per seed (McNemar)"]
     rows = []

@@ -79,17 +79,23 @@ class EvaluationSet:
                                seed_offset=self.seed_offset, progress=progress, **kw)
 
 
-def policy_makers(runs: Sequence[str], references: Sequence[str], eval_set: EvaluationSet,
+def policy_makers(runs: Mapping[str, str], references: Sequence[str], eval_set: EvaluationSet,
                   device: torch.device) -> dict[str, Callable[[], Policy]]:
-    """Load every run (failing early, with a one-line error) and name every policy to evaluate."""
+    """Load every run (failing early, with a one-line error) and name every policy to evaluate.
+
+    ``runs`` maps each run's name (a label, or its folder) to its folder; the result and
+    ``eval_set.observations`` are keyed by those names, so no run and reference share one.
+    """
     makers: dict[str, Callable[[], Policy]] = {}
-    for run in runs:
+    for name, run in runs.items():
         net, cfg = load_policy_network(run, device)
-        if eval_set.observation and cfg.observation.model_dump() != eval_set.observations.get(run, eval_set.observation):
+        if eval_set.observation and cfg.observation.model_dump() != eval_set.observations.get(name, eval_set.observation):
             raise ConfigError(f"{run}: trained on another observation config than the evaluation's")
-        makers[run] = greedy_policy(net, device)
+        makers[name] = greedy_policy(net, device)
     reward = RewardConfig(**eval_set.reward)
     for name in references:
+        if name in makers:
+            raise ConfigError(f"{name!r} names both a run and a reference policy")
         if name in SIMULATOR_POLICIES and eval_set.backend != "fast":
             raise ConfigError(f"the {name!r} reference needs the fast backend (it branches the simulation "
                               f"state, which the {eval_set.backend} backend cannot copy cheaply)")

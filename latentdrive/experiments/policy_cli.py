@@ -99,9 +99,21 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
 
     # A run's name in the tables, the JSON and the GIF's panels: its LABEL, or its path.
     names: dict[str, str] = {}
-    if args.run:
-        label, run = _labelled(args.run)
+
+    def name_run(arg: str) -> str:
+        label, run = _labelled(arg)
+        if label in REFERENCE_POLICIES:
+            raise ConfigError(f"{arg}: {label!r} is a reference policy's name; label the run otherwise")
+        same = [r for r in names if Path(r).resolve() == Path(run).resolve()]
+        if same:  # the run compared with itself: one policy, one name
+            if label not in (None, names[same[0]]):
+                raise ConfigError(f"{arg}: the RUN itself, under another label")
+            return names[same[0]]
         names[run] = label or run
+        return names[run]
+
+    if args.run:
+        name_run(args.run)
     if args.policy is None:  # every reference the backend can run
         references = [p for p in REFERENCE_POLICIES if args.backend == "fast" or p not in SIMULATOR_POLICIES]
     else:
@@ -109,19 +121,17 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
     if args.compare:
         if not names:
             raise ConfigError("--compare needs a RUN to compare with")
-        label, second = _labelled(args.compare)
         # A run directory wins over a reference policy of the same name.
-        if label is None and second in REFERENCE_POLICIES and not (Path(second) / "config.json").exists():
-            if second not in references:
-                references.append(second)
-            compared = second
-        elif second in names:  # the run compared with itself: one policy, one name
-            if label not in (None, names[second]):
-                raise ConfigError(f"--compare {args.compare}: the RUN itself, under another label")
-            compared = names[second]
+        if args.compare in REFERENCE_POLICIES and not (Path(args.compare) / "config.json").exists():
+            if args.compare not in references:
+                references.append(args.compare)
+            compared = args.compare
         else:
-            names[second] = compared = label or second
+            compared = name_run(args.compare)
     runs = list(names)
+
+    def shown(run: str) -> str:
+        return run if names[run] == run else f"{names[run]} ({run})"
     configs = [read_run_config(r) for r in runs]  # fail before any work
     for run, c in zip(runs, configs, strict=True):
         moved = changed_scenarios(c)
@@ -151,7 +161,7 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
                           f"{first_slot} of its episodes (--episodes {args.episodes}, --envs {args.envs}), "
                           f"got {args.gif_episode}")
     if len(set(names.values())) < len(names):
-        raise ConfigError(f"the RUN and --compare share the name {next(iter(names.values()))!r}: label them apart")
+        raise ConfigError(f"the RUN and --compare go by one name, {names[runs[-1]]!r}: label them apart")
     clash = sorted(set(names.values()) & set(references))
     if clash:
         raise ConfigError(f"{clash[0]!r} names both a run and a reference policy; give the run as ./{clash[0]} "
@@ -171,22 +181,24 @@ def _cmd_evaluate(args: argparse.Namespace) -> int:
         other = [n for n in scenarios if n in stored and n in c["train"]["specs"]
                  and c["train"]["specs"][n] != stored[n].model_dump(mode="json")]
         if other:
-            _say(f"warning: {run} was trained on another spec of {', '.join(other)} than {runs[0]}; "
-                 f"both are evaluated on {runs[0]}'s")
+            _say(f"warning: {shown(run)} was trained on another spec of {', '.join(other)} than {shown(runs[0])}; "
+                 f"both are evaluated on {names[runs[0]]}'s")
     eval_set = EvaluationSet(scenarios, args.episodes, args.envs, args.backend, args.seed_offset,
                              observation=observations[0] if observations else None,
                              reward=rewards[0] if rewards and all(r == rewards[0] for r in rewards) else None,
                              planner=planner_config_from_args(args.overrides) if "plan" in references else None,
                              specs=stored,
-                             observations={r: o for r, o in zip(runs, observations, strict=True) if o != observations[0]})
+                             observations={names[r]: o for r, o in zip(runs, observations, strict=True)
+                                           if o != observations[0]})
     if eval_set.observations:
-        _say(f"note: the runs observe different maps ({', '.join(eval_set.observations)} not as {runs[0]}); each "
-             f"plays the same episodes through its own, and the references see {runs[0]}'s")
+        _say(f"note: the runs observe different maps ({', '.join(shown(r) for r in runs if names[r] in eval_set.observations)} "
+             f"not as {shown(runs[0])}); each plays the same episodes through its own, and the references see "
+             f"{names[runs[0]]}'s")
     if args.overrides and "plan" not in references:
         raise ConfigError("--set planner.* given, but the planner ('plan') is not evaluated")
     device = resolve_device(args.device)
     total = args.episodes * len(scenarios) * (len(runs) + len(references))
-    makers = {names.get(k, k): make for k, make in policy_makers(runs, references, eval_set, device).items()}
+    makers = policy_makers({name: run for run, name in names.items()}, references, eval_set, device)
     with tqdm(total=total, unit="ep", disable=args.quiet, desc="evaluate", dynamic_ncols=True) as bar:
         reports, outcomes = evaluate_many(makers, eval_set, progress=bar.update)
     print(f"{args.episodes} evaluation episodes per scenario ({eval_set.envs} envs, reset seed "
@@ -268,6 +280,9 @@ def _labelled(arg: str) -> tuple[str | None, str]:
     label, run = arg.split("=", 1)
     if not label:
         raise ConfigError(f"{arg}: an empty label before '='")
+    if not run or not Path(run).is_dir():
+        raise ConfigError(f"{arg}: neither a run folder nor LABEL=RUN with one (no folder {run!r}); a LABEL "
+                          "names a run, reference policies go by their own names")
     return label, run
 
 

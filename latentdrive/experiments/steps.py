@@ -108,9 +108,10 @@ def run_evaluate(config: Mapping[str, Any], inputs: Mapping[str, Path], folder: 
                              observation=ev.get("observation") or {}, reward=ev.get("reward") or {}, planner=planner)
     _one_thread()
     if "policy" in inputs:
-        makers = policy_makers([str(inputs["policy"] / RUN)], [], eval_set, torch.device("cpu"))
+        run = str(inputs["policy"] / RUN)
+        makers = policy_makers({run: run}, [], eval_set, torch.device("cpu"))
     else:
-        makers = policy_makers([], [config["reference"]], eval_set, torch.device("cpu"))
+        makers = policy_makers({}, [config["reference"]], eval_set, torch.device("cpu"))
     (make,) = makers.values()
     outcomes = eval_set.run(make)
     atomic_write_text(folder / OUTCOMES, json.dumps(outcomes_to_json(outcomes), allow_nan=False) + "\n")

@@ -140,3 +140,27 @@ def test_seeds_against_their_own_runs_print_each_b_in_run_order(tmp_path, capsys
     assert "90.0 / 80.0 / 70.0" in row
     highway = next(line for line in out.splitlines() if line.startswith("highway"))
     assert "30.0 / 30.0 / 30.0" in highway
+
+
+def test_seeds_evaluated_under_one_label_are_told_apart_by_their_folders(tmp_path, capsys) -> None:
+    """`evaluate raw=runs/raw-sK --compare latent=runs/lat-sK` names every seed alike: the
+    folders in `config.paths` say which run each is."""
+    docs = [_doc(r, {"merge": 0.9 - 0.1 * i, "highway": 0.3}, policy="raw") for i, r in enumerate(SEEDS)]
+    for i, d in enumerate(docs):
+        d["compare"]["b"] = "latent"
+        d["config"]["paths"] = {"raw": f"runs/raw-s{i}", "latent": f"runs/lat-s{i}"}
+    files = _files(tmp_path, docs)
+    agg = aggregate_seeds([read_seed_eval(f) for f in files])
+    assert agg["paired"] and agg["rows"]["merge"]["compare_rates"] == pytest.approx([0.9, 0.8, 0.7])
+    assert main(["aggregate", *map(str, files)]) == 0
+    merge = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("merge"))
+    assert "90.0 / 80.0 / 70.0" in merge  # each seed's own B, not the first seed's alone
+    # One folder under two labels is still one seed given twice.
+    docs[1]["policy"], docs[1]["config"]["paths"] = "other", {"other": "runs/raw-s0", "latent": "runs/lat-s1"}
+    files = _files(tmp_path, docs)
+    with pytest.raises(ConfigError, match="the same policy"):
+        aggregate_seeds([read_seed_eval(f) for f in files])
+    docs[1]["config"]["paths"] = ["runs/raw-s1"]
+    files = _files(tmp_path, docs)
+    with pytest.raises(ConfigError, match=r"s1\.json: .*config\.paths is not a mapping"):
+        read_seed_eval(files[1])

@@ -440,6 +440,10 @@ def test_runs_observing_different_maps_are_compared_on_the_same_episodes(tmp_pat
     assert joint[str(raw_run)] == json.loads(alone_a.read_text())["policies"][str(raw_run)]
     assert joint[str(routed)] == json.loads(alone_b.read_text())["policies"][str(routed)]
     assert json.loads(both.read_text())["compare"]["b"] == str(routed)
+    # Labelled, each run still sees its own map (regression: the labelled run saw the first's).
+    seen.clear()
+    assert main(["evaluate", f"a={raw_run}", "--compare", f"b={routed}", "--policy", "none", *common]) == 0
+    assert "b (" in capsys.readouterr().err and seen == [0.0, 0.5]
 
 
 def test_the_actions_script_reports_the_runs_own_driving(raw_run, capsys):
@@ -521,8 +525,26 @@ def test_evaluate_names_runs_by_their_labels(tmp_path, capsys, raw_run, monkeypa
     doc = json.loads(out.read_text())
     assert set(doc["policies"]) == {str(raw_run)} and "paths" not in doc["config"]
     # A label that names a reference, or the run itself under a second label, is refused.
-    _fails(capsys, ["evaluate", f"stop={raw_run}", "--policy", "stop", *common], "'stop' names both a run and a "
-           "reference policy", tmp_path)
+    _fails(capsys, ["evaluate", f"stop={raw_run}", "--policy", "stop", *common], "'stop' is a reference policy's name",
+           tmp_path)
     _fails(capsys, ["evaluate", f"a={raw_run}", "--compare", f"b={raw_run}", *common], "the RUN itself, under another "
            "label", tmp_path)
     _fails(capsys, ["evaluate", f"={raw_run}", *common], "an empty label before '='", tmp_path)
+    # Refused whether or not that reference is evaluated; only runs take a label.
+    _fails(capsys, ["evaluate", f"rule={raw_run}", "--policy", "none", *common], "'rule' is a reference policy's name",
+           tmp_path)
+    _fails(capsys, ["evaluate", str(raw_run), "--compare", "x=stop", *common], "x=stop: neither a run folder nor "
+           "LABEL=RUN", tmp_path)
+    _fails(capsys, ["evaluate", "x=", *common], "(no folder '')", tmp_path)
+    # The same folder written another way is the same run.
+    assert main(["evaluate", f"a={raw_run}", "--compare", f"{raw_run}/.", "--policy", "none", "--json", str(out),
+                 *common]) == 0
+    doc = json.loads(out.read_text())
+    assert doc["compare"]["b"] == "a" and doc["compare"]["tests"]["mixed"]["failed"]["p_value"] == 1.0
+    _fails(capsys, ["evaluate", f"a={raw_run}", "--compare", f"b={raw_run}/.", *common], "the RUN itself, under "
+           "another label", tmp_path)
+    other = tmp_path / "x=y"
+    shutil.copytree(raw_run, other)  # a folder with '=' in its name is a run, not LABEL=RUN
+    assert main(["evaluate", str(other), "--policy", "none", "--json", str(out), *common]) == 0
+    assert json.loads(out.read_text())["policy"] == str(other)
+    _fails(capsys, ["evaluate", f"a={raw_run}", "--compare", f"a={other}", *common], "go by one name, 'a'", tmp_path)
