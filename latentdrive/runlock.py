@@ -27,7 +27,7 @@ try:
 except ImportError:  # pragma: no cover - not on POSIX
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["LOCK_NAME", "DirectoryInUse", "Turn", "dir_lock"]
+__all__ = ["LOCK_NAME", "DirectoryInUse", "Turn", "dir_lock", "holder"]
 
 #: flock's errors where the filesystem cannot lock at all: run unlocked rather than fail.
 _UNLOCKABLE = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL)
@@ -102,6 +102,27 @@ def dir_lock(directory: str | Path, what: str) -> Iterator[None]:
             with _held_guard:
                 del _held[key]
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+
+
+def holder(directory: str | Path) -> str | None:
+    """Who holds ``directory``'s lock (the line its holder wrote, e.g. ``reproduce (pid
+    123)``), or None when no process does, the directory has never been locked, or locks
+    are unavailable. Nothing is written; the probe takes a shared lock for an instant, so a
+    run starting in that instant is refused as if the directory were in use."""
+    path = Path(directory) / LOCK_NAME
+    if fcntl is None or not path.is_file():
+        return None
+    with path.open() as f:
+        try:
+            fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+        except BlockingIOError:
+            return f.read().strip() or "another run"
+        except OSError as exc:
+            if exc.errno not in _UNLOCKABLE:
+                raise
+            return None
+        fcntl.flock(f.fileno(), fcntl.LOCK_UN)
+    return None
 
 
 class Turn:

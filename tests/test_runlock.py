@@ -13,7 +13,7 @@ from latentdrive.bnn.batch import array_batches_fn, synthetic_dataset
 from latentdrive.bnn.train import BNNTrainConfig, train_bnn
 from latentdrive.config import LatentDriveError
 from latentdrive.models.bottleneck import BottleneckConfig
-from latentdrive.runlock import LOCK_NAME, DirectoryInUse, dir_lock
+from latentdrive.runlock import LOCK_NAME, DirectoryInUse, dir_lock, holder
 
 
 def test_a_held_directory_is_refused_with_the_holder(tmp_path: Path) -> None:
@@ -27,6 +27,17 @@ def test_a_held_directory_is_refused_with_the_holder(tmp_path: Path) -> None:
     # The holder was killed: no stale lock is left behind.
     with dir_lock(d, "collect"):
         assert (d / LOCK_NAME).read_text().startswith("collect (pid ")
+
+
+def test_the_holder_is_read_without_taking_or_writing_the_lock(tmp_path: Path) -> None:
+    assert holder(tmp_path) is None  # never locked: no lock file
+    with held_by_another_process(tmp_path, "reproduce") as child:
+        before = (tmp_path / LOCK_NAME).read_bytes()
+        assert holder(tmp_path) == f"reproduce (pid {child.pid})"
+        assert (tmp_path / LOCK_NAME).read_bytes() == before
+    assert holder(tmp_path) is None  # released when its holder ended
+    with dir_lock(tmp_path, "collect"):  # the probe left it free to take
+        pass
 
 
 def test_the_lock_is_reentrant_within_a_process(tmp_path: Path) -> None:

@@ -23,7 +23,7 @@ from latentdrive.models.vfan import VFANConfig
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.dqn import DQNConfig
 
-__all__ = ["Estimate", "estimate_study", "measured_rates", "scored_count", "step_size"]
+__all__ = ["Estimate", "estimate_study", "makespan", "measured_rates", "scored_count", "step_size"]
 
 
 def step_size(step: Step, epoch_samples: float | None = None) -> tuple[str, float]:
@@ -159,11 +159,11 @@ def estimate_study(graph: Graph, rates: Mapping[str, float], workers: int, epoch
         times[name] = t
         by_class[cls] = by_class.get(cls, 0.0) + t / 3600
     return Estimate(steps=len(graph.order), step_hours=sum(times.values()) / 3600,
-                    wall_hours=_makespan(graph, times, workers) / 3600, workers=workers,
+                    wall_hours=makespan(graph, times, workers) / 3600, workers=workers,
                     by_class={k: round(v, 2) for k, v in sorted(by_class.items())}, unmeasured=sorted(unmeasured))
 
 
-def _makespan(graph: Graph, times: Mapping[str, float], workers: int) -> float:
+def makespan(graph: Graph, times: Mapping[str, float], workers: int) -> float:
     """Wall time of a list schedule: a free worker takes the ready step with the longest
     chain of step times after it (as the local executor does)."""
     dependents: dict[str, list[str]] = {n: [] for n in graph.order}

@@ -12,7 +12,7 @@ import math
 import platform
 from collections.abc import Callable, Mapping
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from latentdrive.config import ConfigError, validate
 from latentdrive.experiments.estimate import Estimate, estimate_study, measured_rates
@@ -27,7 +27,7 @@ from latentdrive.runlock import dir_lock
 from latentdrive.runtime import usable_cpus
 from latentdrive.scenarios import ScenarioSpec, resolve_specs
 
-__all__ = ["estimate_from", "read_study", "rebuild_report", "run_study"]
+__all__ = ["MeasuredStudy", "estimate_from", "measure_study", "read_study", "rebuild_report", "run_study"]
 
 STUDY = "study.json"
 #: Imported once by the worker processes' fork server, so each step starts in milliseconds.
@@ -180,6 +180,39 @@ def rebuild_report(out: str | Path, say: Callable[[str], None] = print) -> dict[
     return _report(cfg, build_graph(cfg, read_study_specs(out)), out, preset, previous, say)
 
 
+class MeasuredStudy(NamedTuple):
+    """What a study folder's finished steps measured."""
+
+    config: ReproduceConfig
+    graph: Graph
+    records: dict[str, StepRecord]
+    #: Seconds per unit of size of each step class (:func:`~latentdrive.experiments.estimate.step_size`).
+    rates: dict[str, float]
+    #: Samples its dataset collected per episode (the default guess until it has collected).
+    per_episode: float
+
+    def epoch_samples(self, cfg: ReproduceConfig) -> float:
+        """An uncapped BNN epoch's samples in study ``cfg`` (this one's, or one planned from
+        it): its training episodes' samples at the samples per episode measured here."""
+        return self.per_episode * cfg.bnn.collect.episodes * len(cfg.scenarios) * (1 - cfg.bnn.val_fraction)
+
+
+def measure_study(out: str | Path) -> MeasuredStudy:
+    """The step times the finished steps of the study in ``out`` recorded, by class (none
+    when no step has finished)."""
+    out = Path(out)
+    cfg, _ = read_study(out)
+    graph = build_graph(cfg, read_study_specs(out))
+    records = {n: r for n in graph.order if (r := graph.record(out, n)) is not None}
+    # An uncapped BNN epoch is the training episodes' samples: the measured dataset's count,
+    # and a planned one's from the samples per episode measured (SAMPLES_PER_EPISODE until one is).
+    collected = records["dataset"].summary.get("samples") if "dataset" in records else None
+    episodes = cfg.bnn.collect.episodes * len(cfg.scenarios)
+    per_episode = collected / episodes if isinstance(collected, int) and collected > 0 else float(SAMPLES_PER_EPISODE)
+    m = MeasuredStudy(cfg, graph, records, {}, per_episode)
+    return m._replace(rates=measured_rates(graph, records, m.epoch_samples(cfg)))
+
+
 def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int],
                   speedup: Mapping[str, float] | None = None) -> list[Estimate]:
     """Estimates of the study ``cfg`` on each number of ``workers``, at the step times the
@@ -189,22 +222,14 @@ def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]
     its classes (``policy``), to how many times faster the target machine runs it than the
     measuring one did (e.g. the ratio of two ``latentdrive bench --train`` runs).
     """
-    measured = Path(measured)
-    m_cfg, _ = read_study(measured)
-    if m_cfg.observation != cfg.observation:
-        a, b = m_cfg.observation.model_dump(), cfg.observation.model_dump()
+    m = measure_study(measured)
+    if m.config.observation != cfg.observation:
+        a, b = m.config.observation.model_dump(), cfg.observation.model_dump()
         diff = ", ".join(f"{k} {a[k]} there, {b[k]} here" for k in a if a[k] != b[k])
         raise ConfigError(f"{measured} measured other observations ({diff}): its step times do not carry over")
-    m_graph = build_graph(m_cfg, read_study_specs(Path(measured)))
-    records = {n: r for n in m_graph.order if (r := m_graph.record(measured, n)) is not None}
-    if not records:
+    if not m.records:
         raise ConfigError(f"{measured}: no finished step to measure")
-    # An uncapped BNN epoch is the training episodes' samples: the measured dataset's count,
-    # and the planned one's from the samples per episode measured (SAMPLES_PER_EPISODE until one is).
-    collected = records["dataset"].summary.get("samples") if "dataset" in records else None
-    m_episodes = m_cfg.bnn.collect.episodes * len(m_cfg.scenarios)
-    per_episode = collected / m_episodes if isinstance(collected, int) and collected > 0 else float(SAMPLES_PER_EPISODE)
-    rates = measured_rates(m_graph, records, per_episode * m_episodes * (1 - m_cfg.bnn.val_fraction))
+    rates = dict(m.rates)
     for name, factor in (speedup or {}).items():
         # A class, or a prefix of classes that ends at a ':' (policy:raw holds policy:raw:objects,
         # not policy:raw-anything).
@@ -216,5 +241,4 @@ def estimate_from(measured: str | Path, cfg: ReproduceConfig, workers: list[int]
         for c in hit:
             rates[c] /= factor
     graph = build_graph(cfg)
-    p_epoch = per_episode * cfg.bnn.collect.episodes * len(cfg.scenarios) * (1 - cfg.bnn.val_fraction)
-    return [estimate_study(graph, rates, w, epoch_samples=p_epoch) for w in workers]
+    return [estimate_study(graph, rates, w, epoch_samples=m.epoch_samples(cfg)) for w in workers]

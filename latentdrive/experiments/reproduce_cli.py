@@ -1,4 +1,4 @@
-"""The ``reproduce`` and ``report`` sub-commands."""
+"""The ``reproduce``, ``estimate``, ``status`` and ``report`` sub-commands."""
 
 from __future__ import annotations
 
@@ -78,6 +78,15 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_status(args: argparse.Namespace) -> int:
+    from latentdrive.experiments.study_status import format_status, study_status
+
+    if args.workers is not None and args.workers < 1:
+        raise LatentDriveError(f"--workers must be at least 1, got {args.workers}")
+    print(format_status(study_status(args.out, args.workers)))
+    return 0
+
+
 def add_reproduce_parsers(sub: Any) -> None:
     s = sub.add_parser("reproduce", help="the paper's study in one command: data, BNNs, policies, evaluations, report")
     s.add_argument("out", help="study folder (rerun the same command to resume; finished steps are skipped)")
@@ -108,6 +117,15 @@ def add_reproduce_parsers(sub: Any) -> None:
                    "faster than the measuring machine, e.g. the ratio of `bench --train` agent-transitions/s there "
                    "and here; repeatable (a kind's factor and one of its classes' multiply)")
     s.set_defaults(func=_cmd_estimate)
+
+    s = sub.add_parser("status", help="where a study folder stands: steps finished and begun, hours recorded and left",
+                       description="Read a study folder (while it runs, or between runs): its steps by class, finished "
+                       "and begun, the hours their records hold, and the hours left at the study's own step times. "
+                       "Changes nothing in the folder.")
+    s.add_argument("out", help="the study folder")
+    s.add_argument("--workers", type=int, default=None,
+                   help="workers to estimate the wall time left for (default: the last logged run's, else 1)")
+    s.set_defaults(func=_cmd_status)
 
     s = sub.add_parser("report", help="rebuild a study's results.json, report.md and figures from its finished steps")
     s.add_argument("out", help="the study folder")

@@ -1,0 +1,125 @@
+"""Where a study folder stands: ``latentdrive status OUT``.
+
+A study that runs for hours, or over several sittings, is read from its folder alone:
+which steps have finished, which were begun and have not (running now, or cut off and
+waiting for a rerun to resume them), the step time its records hold, and the time left,
+estimated from the study's own finished steps. A step class none of them has measured yet
+counts at the graph's rough guess (:attr:`~latentdrive.experiments.graph.Step.cost`) and
+is marked so. Reading the status changes nothing in the folder.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+from latentdrive.experiments.estimate import makespan, step_size
+from latentdrive.experiments.graph import Graph
+from latentdrive.experiments.reproduce import measure_study, read_study
+from latentdrive.experiments.study_runs import read_runs, runs_summary
+from latentdrive.runlock import holder
+
+__all__ = ["ClassStatus", "StudyStatus", "format_status", "study_status"]
+
+
+@dataclass(frozen=True)
+class ClassStatus:
+    """The steps of one step class (as ``estimate`` names them)."""
+
+    steps: int
+    finished: int
+    #: Hours the finished steps' records hold (their wall time and any resumed time).
+    recorded_h: float
+    #: Hours the unfinished ones should take, begun ones counted whole.
+    left_h: float
+    #: Whether ``left_h`` comes from this study's own finished steps of the class (else the
+    #: graph's rough guess).
+    measured: bool
+
+
+@dataclass(frozen=True)
+class StudyStatus:
+    """A study folder's progress; :func:`format_status` prints it."""
+
+    out: Path
+    preset: str
+    steps: int
+    finished: int
+    #: Steps with a folder and no record: running now, or cut off.
+    begun: tuple[str, ...]
+    classes: dict[str, ClassStatus]
+    workers: int
+    #: Wall hours the unfinished steps should take on ``workers`` (as the local executor
+    #: schedules them), at least.
+    wall_left_h: float
+    #: The lock holder's line while a run holds the folder (None when none does).
+    in_use: str | None
+    #: One line on the runs its log holds (None when there is nothing to say).
+    runs: str | None
+
+    @property
+    def recorded_h(self) -> float:
+        return sum(c.recorded_h for c in self.classes.values())
+
+    @property
+    def left_h(self) -> float:
+        return sum(c.left_h for c in self.classes.values())
+
+
+def study_status(out: str | Path, workers: int | None = None) -> StudyStatus:
+    """Read the status of the study in ``out``; ``workers`` the wall time is estimated for
+    (default: the last logged run's, else 1)."""
+    out = Path(out)
+    _, preset = read_study(out)
+    m = measure_study(out)
+    graph, records = m.graph, m.records
+    runs = read_runs(out)
+    if workers is None:
+        logged = runs[-1].get("workers") if runs else None
+        workers = logged if isinstance(logged, int) and logged > 0 else 1
+    epoch = m.epoch_samples(m.config)
+    pending = [n for n in graph.order if n not in records]
+    times: dict[str, float] = {}
+    counts: dict[str, list[float]] = {}  # class -> [steps, finished, recorded s, left s]
+    for name in graph.order:
+        cls, size = step_size(graph.steps[name], epoch)
+        c = counts.setdefault(cls, [0, 0, 0.0, 0.0])
+        c[0] += 1
+        if name in records:
+            c[1] += 1
+            c[2] += records[name].cost_s
+        else:
+            times[name] = m.rates[cls] * size if cls in m.rates else graph.steps[name].cost
+            c[3] += times[name]
+    classes = {cls: ClassStatus(int(c[0]), int(c[1]), c[2] / 3600, c[3] / 3600, cls in m.rates)
+               for cls, c in sorted(counts.items())}
+    # The finished steps are done: the rest is scheduled on its own, from now.
+    rest = Graph(dataclasses.replace(graph.steps[n], inputs={r: d for r, d in graph.steps[n].inputs.items()
+                                                               if d in times}) for n in pending)
+    begun = tuple(n for n in pending if graph.folder(out, n).is_dir())
+    return StudyStatus(out, preset, len(graph.order), len(records), begun, classes, workers,
+                       makespan(rest, times, workers) / 3600, holder(out), runs_summary(runs))
+
+
+def format_status(st: StudyStatus) -> str:
+    """The lines ``latentdrive status`` prints."""
+    lines = [f"{st.out}: {st.preset or 'custom'} study, {st.steps} steps: {st.finished} finished, "
+             f"{len(st.begun)} begun and not finished, {st.steps - st.finished - len(st.begun)} not begun",
+             "running now: " + (st.in_use or "nothing (no run holds the folder)")]
+    w = max(len("step class"), *(len(c) for c in st.classes))
+    lines.append(f"{'step class':<{w}}  {'finished':>9}  {'recorded h':>10}  {'left h':>8}")
+    for cls, c in st.classes.items():
+        left = "" if c.steps == c.finished else f"{c.left_h:.2f}{'' if c.measured else '*'}"
+        lines.append(f"{cls:<{w}}  {f'{c.finished}/{c.steps}':>9}  {c.recorded_h:>10.2f}  {left:>8}")
+    lines.append(f"{'all':<{w}}  {f'{st.finished}/{st.steps}':>9}  {st.recorded_h:>10.2f}  {st.left_h:>8.2f}")
+    guessed = [cls for cls, c in st.classes.items() if c.steps > c.finished and not c.measured]
+    lines.append(f"left: {st.left_h:.2f} step-hours, at least {st.wall_left_h:.2f} h on {st.workers} worker(s), at "
+                 "this study's own step times (steps begun count whole)")
+    if guessed:
+        lines.append("* not measured by a finished step yet: the graph's rough guess (" + ", ".join(guessed) + ")")
+    for name in st.begun:
+        lines.append(f"begun: {name}")
+    if st.runs:
+        lines.append(st.runs.removeprefix("- "))
+    return "\n".join(lines)
