@@ -16,6 +16,7 @@ import errno
 import os
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -27,7 +28,7 @@ try:
 except ImportError:  # pragma: no cover - not on POSIX
     fcntl = None  # type: ignore[assignment]
 
-__all__ = ["LOCK_NAME", "DirectoryInUse", "Turn", "dir_lock", "holder"]
+__all__ = ["LOCK_NAME", "UNKNOWN", "DirectoryInUse", "Turn", "dir_lock", "holder"]
 
 #: flock's errors where the filesystem cannot lock at all: run unlocked rather than fail.
 _UNLOCKABLE = (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS, errno.EINVAL)
@@ -77,7 +78,7 @@ def dir_lock(directory: str | Path, what: str) -> Iterator[None]:
         return
     with (d / LOCK_NAME).open("a+") as f:
         try:
-            fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+            _lock_exclusive(f.fileno())
         except BlockingIOError:
             f.seek(0)
             holder = f.read().strip() or "another run"
@@ -104,23 +105,50 @@ def dir_lock(directory: str | Path, what: str) -> Iterator[None]:
             fcntl.flock(f.fileno(), fcntl.LOCK_UN)
 
 
+#: How long :func:`dir_lock` tries before calling a directory in use (seconds): a
+#: :func:`holder` probe holds a shared lock for an instant, which must not refuse a run.
+_PATIENCE_S = 0.5
+
+
+def _lock_exclusive(fd: int) -> None:
+    """Take ``fd``'s exclusive lock, trying for :data:`_PATIENCE_S`; BlockingIOError when
+    it stays held."""
+    deadline = time.monotonic() + _PATIENCE_S
+    while True:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            return
+        except BlockingIOError:
+            if time.monotonic() >= deadline:
+                raise
+            time.sleep(0.02)
+
+
+#: :func:`holder`'s answer where it cannot tell (no locks here, an unreadable lock file).
+UNKNOWN = "unknown (the lock cannot be read here)"
+
+
 def holder(directory: str | Path) -> str | None:
-    """Who holds ``directory``'s lock (the line its holder wrote, e.g. ``reproduce (pid
-    123)``), or None when no process does, the directory has never been locked, or locks
-    are unavailable. Nothing is written; the probe takes a shared lock for an instant, so a
-    run starting in that instant is refused as if the directory were in use."""
+    """Who holds ``directory``'s lock: the line its holder wrote (e.g. ``reproduce (pid
+    123)``), None when no process does (or the directory was never locked), or
+    :data:`UNKNOWN`. Nothing is written; the probe holds a shared lock for an instant,
+    which :func:`dir_lock` waits out."""
     path = Path(directory) / LOCK_NAME
-    if fcntl is None or not path.is_file():
+    if fcntl is None:  # pragma: no cover - not on POSIX
+        return UNKNOWN
+    if not path.exists():
         return None
-    with path.open() as f:
+    try:
+        f = path.open()
+    except OSError:  # unreadable, or not a file
+        return UNKNOWN
+    with f:
         try:
             fcntl.flock(f.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
         except BlockingIOError:
             return f.read().strip() or "another run"
-        except OSError as exc:
-            if exc.errno not in _UNLOCKABLE:
-                raise
-            return None
+        except OSError:
+            return UNKNOWN
         fcntl.flock(f.fileno(), fcntl.LOCK_UN)
     return None
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +14,7 @@ from latentdrive.bnn.batch import array_batches_fn, synthetic_dataset
 from latentdrive.bnn.train import BNNTrainConfig, train_bnn
 from latentdrive.config import LatentDriveError
 from latentdrive.models.bottleneck import BottleneckConfig
-from latentdrive.runlock import LOCK_NAME, DirectoryInUse, dir_lock, holder
+from latentdrive.runlock import LOCK_NAME, UNKNOWN, DirectoryInUse, dir_lock, holder
 
 
 def test_a_held_directory_is_refused_with_the_holder(tmp_path: Path) -> None:
@@ -30,7 +31,7 @@ def test_a_held_directory_is_refused_with_the_holder(tmp_path: Path) -> None:
 
 
 def test_the_holder_is_read_without_taking_or_writing_the_lock(tmp_path: Path) -> None:
-    assert holder(tmp_path) is None  # never locked: no lock file
+    assert holder(tmp_path) is None and not (tmp_path / LOCK_NAME).exists()  # never locked, and still not
     with held_by_another_process(tmp_path, "reproduce") as child:
         before = (tmp_path / LOCK_NAME).read_bytes()
         assert holder(tmp_path) == f"reproduce (pid {child.pid})"
@@ -38,6 +39,23 @@ def test_the_holder_is_read_without_taking_or_writing_the_lock(tmp_path: Path) -
     assert holder(tmp_path) is None  # released when its holder ended
     with dir_lock(tmp_path, "collect"):  # the probe left it free to take
         pass
+    weird = tmp_path / "weird"
+    (weird / LOCK_NAME).mkdir(parents=True)
+    assert holder(weird) == UNKNOWN
+
+
+def test_a_probe_of_the_lock_does_not_refuse_a_run_starting_at_that_instant(tmp_path: Path) -> None:
+    import fcntl
+
+    with dir_lock(tmp_path, "collect"):
+        pass
+    with (tmp_path / LOCK_NAME).open() as probe:  # as holder() holds it for an instant
+        fcntl.flock(probe.fileno(), fcntl.LOCK_SH | fcntl.LOCK_NB)
+        timer = threading.Timer(0.1, lambda: fcntl.flock(probe.fileno(), fcntl.LOCK_UN))
+        timer.start()
+        with dir_lock(tmp_path, "reproduce"):  # waits the probe out
+            pass
+        timer.join()
 
 
 def test_the_lock_is_reentrant_within_a_process(tmp_path: Path) -> None:

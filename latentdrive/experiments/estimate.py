@@ -165,7 +165,8 @@ def estimate_study(graph: Graph, rates: Mapping[str, float], workers: int, epoch
 
 def makespan(graph: Graph, times: Mapping[str, float], workers: int) -> float:
     """Wall time of a list schedule: a free worker takes the ready step with the longest
-    chain of step times after it (as the local executor does)."""
+    chain of step times after it (the local executor ranks steps alike, by the graph's
+    rough costs rather than these times)."""
     dependents: dict[str, list[str]] = {n: [] for n in graph.order}
     for n in graph.order:
         for dep in graph.steps[n].inputs.values():

@@ -184,6 +184,8 @@ class MeasuredStudy(NamedTuple):
     """What a study folder's finished steps measured."""
 
     config: ReproduceConfig
+    #: The preset it was run with ("" for a config of its own).
+    preset: str
     graph: Graph
     records: dict[str, StepRecord]
     #: Seconds per unit of size of each step class (:func:`~latentdrive.experiments.estimate.step_size`).
@@ -201,7 +203,7 @@ def measure_study(out: str | Path) -> MeasuredStudy:
     """The step times the finished steps of the study in ``out`` recorded, by class (none
     when no step has finished)."""
     out = Path(out)
-    cfg, _ = read_study(out)
+    cfg, preset = read_study(out)
     graph = build_graph(cfg, read_study_specs(out))
     records = {n: r for n in graph.order if (r := graph.record(out, n)) is not None}
     # An uncapped BNN epoch is the training episodes' samples: the measured dataset's count,
@@ -209,7 +211,7 @@ def measure_study(out: str | Path) -> MeasuredStudy:
     collected = records["dataset"].summary.get("samples") if "dataset" in records else None
     episodes = cfg.bnn.collect.episodes * len(cfg.scenarios)
     per_episode = collected / episodes if isinstance(collected, int) and collected > 0 else float(SAMPLES_PER_EPISODE)
-    m = MeasuredStudy(cfg, graph, records, {}, per_episode)
+    m = MeasuredStudy(cfg, preset, graph, records, {}, per_episode)
     return m._replace(rates=measured_rates(graph, records, m.epoch_samples(cfg)))
 
 

@@ -81,8 +81,6 @@ def _cmd_estimate(args: argparse.Namespace) -> int:
 def _cmd_status(args: argparse.Namespace) -> int:
     from latentdrive.experiments.study_status import format_status, study_status
 
-    if args.workers is not None and args.workers < 1:
-        raise LatentDriveError(f"--workers must be at least 1, got {args.workers}")
     print(format_status(study_status(args.out, args.workers)))
     return 0
 

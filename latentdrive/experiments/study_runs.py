@@ -98,12 +98,14 @@ class StudyRuns:
             self.runs = None
 
 
-def runs_summary(runs: list[dict[str, Any]] | None) -> str | None:
+def runs_summary(runs: list[dict[str, Any]] | None, running: bool = False) -> str | None:
     """One report line on every run of a study folder, or None when there is nothing to say
-    (no log, or one run that ran to its end: the report's last-run line says it all)."""
+    (no log, or one run that ran to its end: the report's last-run line says it all).
+    ``running``: the last run is still at work (it has logged no end yet, and is not cut off)."""
     if not runs:
         return None
-    short = [r for r in runs if r.get("ended") != "finished"]
+    done = runs[:-1] if running else runs
+    short = [r for r in done if r.get("ended") != "finished"]
     if len(runs) == 1 and not short:
         return None
     active = sum(float(r["active_s"]) for r in runs)
@@ -113,4 +115,6 @@ def runs_summary(runs: list[dict[str, Any]] | None) -> str | None:
         cut = sum(1 for r in short if r.get("ended") is None)
         line += (f", {len(short)} of them not to their end ({cut} cut off, {len(short) - cut} stopped by an error "
                  "or an interrupt; a run cut off counts to its last finished step)")
+    if running:
+        line += "; the last is still at work (counted to its last finished step)"
     return line + "."

@@ -14,11 +14,12 @@ import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
+from latentdrive.config import ConfigError
 from latentdrive.experiments.estimate import makespan, step_size
 from latentdrive.experiments.graph import Graph
-from latentdrive.experiments.reproduce import measure_study, read_study
-from latentdrive.experiments.study_runs import read_runs, runs_summary
-from latentdrive.runlock import holder
+from latentdrive.experiments.reproduce import measure_study
+from latentdrive.experiments.study_runs import RUNS, read_runs, runs_summary
+from latentdrive.runlock import UNKNOWN, holder
 
 __all__ = ["ClassStatus", "StudyStatus", "format_status", "study_status"]
 
@@ -50,34 +51,50 @@ class StudyStatus:
     begun: tuple[str, ...]
     classes: dict[str, ClassStatus]
     workers: int
-    #: Wall hours the unfinished steps should take on ``workers`` (as the local executor
-    #: schedules them), at least.
+    #: Where ``workers`` came from (given, the last logged run's, or a default of 1).
+    workers_from: str
+    #: Wall hours the unfinished steps should take on ``workers``, about: a list schedule
+    #: of their times, longest chain first.
     wall_left_h: float
-    #: The lock holder's line while a run holds the folder (None when none does).
+    #: The lock holder's line while a run holds the folder, None when none does, or
+    #: :data:`~latentdrive.runlock.UNKNOWN`.
     in_use: str | None
     #: One line on the runs its log holds (None when there is nothing to say).
     runs: str | None
 
     @property
     def recorded_h(self) -> float:
+        """Hours the finished steps' records hold."""
         return sum(c.recorded_h for c in self.classes.values())
 
     @property
     def left_h(self) -> float:
+        """Step-hours the unfinished steps should take."""
         return sum(c.left_h for c in self.classes.values())
+
+    @property
+    def guessed_h(self) -> float:
+        """Of :attr:`left_h`, the hours of classes no finished step has measured yet."""
+        return sum(c.left_h for c in self.classes.values() if not c.measured)
 
 
 def study_status(out: str | Path, workers: int | None = None) -> StudyStatus:
     """Read the status of the study in ``out``; ``workers`` the wall time is estimated for
     (default: the last logged run's, else 1)."""
     out = Path(out)
-    _, preset = read_study(out)
+    if workers is not None and workers < 1:
+        raise ConfigError(f"--workers must be at least 1, got {workers}")
     m = measure_study(out)
     graph, records = m.graph, m.records
     runs = read_runs(out)
+    workers_from = "given"
     if workers is None:
         logged = runs[-1].get("workers") if runs else None
-        workers = logged if isinstance(logged, int) and logged > 0 else 1
+        if isinstance(logged, int) and logged > 0:
+            workers, workers_from = logged, "the last logged run's"
+        else:
+            workers = 1
+            workers_from = (f"{out / RUNS} is damaged" if runs is None else "no run logged one") + "; give --workers"
     epoch = m.epoch_samples(m.config)
     pending = [n for n in graph.order if n not in records]
     times: dict[str, float] = {}
@@ -98,8 +115,10 @@ def study_status(out: str | Path, workers: int | None = None) -> StudyStatus:
     rest = Graph(dataclasses.replace(graph.steps[n], inputs={r: d for r, d in graph.steps[n].inputs.items()
                                                                if d in times}) for n in pending)
     begun = tuple(n for n in pending if graph.folder(out, n).is_dir())
-    return StudyStatus(out, preset, len(graph.order), len(records), begun, classes, workers,
-                       makespan(rest, times, workers) / 3600, holder(out), runs_summary(runs))
+    in_use = holder(out)
+    return StudyStatus(out, m.preset, len(graph.order), len(records), begun, classes, workers, workers_from,
+                       makespan(rest, times, workers) / 3600, in_use,
+                       runs_summary(runs, running=in_use is not None and in_use != UNKNOWN))
 
 
 def format_status(st: StudyStatus) -> str:
@@ -107,17 +126,20 @@ def format_status(st: StudyStatus) -> str:
     lines = [f"{st.out}: {st.preset or 'custom'} study, {st.steps} steps: {st.finished} finished, "
              f"{len(st.begun)} begun and not finished, {st.steps - st.finished - len(st.begun)} not begun",
              "running now: " + (st.in_use or "nothing (no run holds the folder)")]
+    guessed = [cls for cls, c in st.classes.items() if c.steps > c.finished and not c.measured]
+    mark = "*" if guessed else ""
     w = max(len("step class"), *(len(c) for c in st.classes))
     lines.append(f"{'step class':<{w}}  {'finished':>9}  {'recorded h':>10}  {'left h':>8}")
     for cls, c in st.classes.items():
         left = "" if c.steps == c.finished else f"{c.left_h:.2f}{'' if c.measured else '*'}"
         lines.append(f"{cls:<{w}}  {f'{c.finished}/{c.steps}':>9}  {c.recorded_h:>10.2f}  {left:>8}")
-    lines.append(f"{'all':<{w}}  {f'{st.finished}/{st.steps}':>9}  {st.recorded_h:>10.2f}  {st.left_h:>8.2f}")
-    guessed = [cls for cls, c in st.classes.items() if c.steps > c.finished and not c.measured]
-    lines.append(f"left: {st.left_h:.2f} step-hours, at least {st.wall_left_h:.2f} h on {st.workers} worker(s), at "
-                 "this study's own step times (steps begun count whole)")
+    lines.append(f"{'all':<{w}}  {f'{st.finished}/{st.steps}':>9}  {st.recorded_h:>10.2f}  "
+                 f"{f'{st.left_h:.2f}{mark}':>8}")
+    lines.append(f"left: about {st.left_h:.2f} step-hours{mark}, {st.wall_left_h:.2f} h on {st.workers} worker(s) "
+                 f"({st.workers_from}), at this study's own step times; steps begun count whole")
     if guessed:
-        lines.append("* not measured by a finished step yet: the graph's rough guess (" + ", ".join(guessed) + ")")
+        lines.append(f"* {st.guessed_h:.2f} h of it the graph's rough guess, for classes no finished step has "
+                     "measured yet: " + ", ".join(guessed))
     for name in st.begun:
         lines.append(f"begun: {name}")
     if st.runs:
