@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import signal
 import sys
 import threading
@@ -439,6 +440,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except LatentDriveError as exc:
         print(f"latentdrive: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:  # the reader went away (`latentdrive status OUT | head`): stop quietly
+        try:  # stdout's unflushed rest would fail again as the interpreter exits
+            os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        except (OSError, ValueError):  # no file descriptor behind it (captured)
+            pass
+        return 141  # as a shell reports a command ended by SIGPIPE
     except OSError as exc:  # a path in the way (a file where a folder goes), a full disk, no permission
         where = f": {exc.filename}" if exc.filename else ""
         print(f"latentdrive: error: {LatentDriveError(f'{exc.strerror or exc}{where}')}", file=sys.stderr)

@@ -149,3 +149,15 @@ def test_no_help_text_shows_an_escaped_percent_sign():
     assert len(subs.choices) > 10
     for name, sub in subs.choices.items():
         assert "%%" not in sub.format_help(), name
+
+
+def test_a_reader_that_goes_away_ends_the_command_quietly(monkeypatch, capsys):
+    # `latentdrive status OUT | head -1`: the rest of the output has nowhere to go.
+    from latentdrive.experiments import reproduce_cli
+
+    def closed_pipe(_args):
+        raise BrokenPipeError(32, "Broken pipe")
+
+    monkeypatch.setattr(reproduce_cli, "_cmd_status", closed_pipe)
+    assert main(["status", "anywhere"]) == 141  # as a shell reports SIGPIPE
+    assert capsys.readouterr().err == ""
