@@ -26,6 +26,11 @@ def _snapshot(root: Path) -> dict[str, bytes | None]:
 def study(tiny_study: Path, tmp_path: Path) -> Path:
     out = tmp_path / "study"
     shutil.copytree(tiny_study, out)
+    # One logged run of 2 workers (other tests rerun the shared study and log runs of their own).
+    (out / RUNS).write_text(json.dumps([{
+        "command": "latentdrive reproduce OUT --preset tiny --workers 2", "workers": 2,
+        "started": "2030-01-01T00:00:00+00:00", "finished_before": 0, "steps": 49, "active_s": 80.0,
+        "wall_s": 80.0, "ended": "finished"}]))
     return out
 
 
