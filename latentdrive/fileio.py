@@ -50,6 +50,7 @@ __all__ = [
     "reset_peak_rss",
     "seconds_logged",
     "seconds_recorded",
+    "shown",
 ]
 
 #: Largest YAML config, preset or scenario spec read (1 MiB): real ones are a few KiB.
@@ -234,10 +235,15 @@ def seconds_recorded(value: object, where: str, error: ErrorType = FileFormatErr
 
 def _seconds(seconds: float, recorded: object, where: str, error: ErrorType, name: str) -> float:
     if not (math.isfinite(seconds) and seconds >= 0):
-        shown = repr(recorded)
-        shown = shown if len(shown) <= 40 else shown[:37] + "..."
-        raise error(f"{where}: {name} {shown} is not a number of seconds")
+        raise error(f"{where}: {name} {shown(recorded)} is not a number of seconds")
     return seconds
+
+
+def shown(value: object, width: int = 40) -> str:
+    """``repr(value)`` cut to ``width`` characters: what an error line quotes of a value a
+    file held (a huge integer or string would otherwise fill the line)."""
+    text = repr(value)
+    return text if len(text) <= width else text[:width - 3] + "..."
 
 
 def read_log(path: str | Path, *, columns: Sequence[str], key: str, limit: int = MAX_LOG_BYTES,

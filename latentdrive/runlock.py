@@ -81,9 +81,9 @@ def dir_lock(directory: str | Path, what: str) -> Iterator[None]:
             _lock_exclusive(f.fileno())
         except BlockingIOError:
             f.seek(0)
-            holder = f.read().strip() or "another run"
+            who = f.read().strip() or "another run"
             raise DirectoryInUse(
-                f"{d}: in use by {holder}; wait for it to finish or use another directory"
+                f"{d}: in use by {who}; wait for it to finish or use another directory"
             ) from None
         except OSError as exc:
             if exc.errno not in _UNLOCKABLE:

@@ -46,6 +46,7 @@ from latentdrive.fileio import (
     read_bytes,
     read_json,
     seconds_recorded,
+    shown,
 )
 
 __all__ = [
@@ -239,9 +240,7 @@ def _count(value: Any, what: str, low: int = 0) -> int:
     """``value`` when it is an integer in ``[low, MAX_COUNT)`` (JSON numbers such as 2.5 or
     true are not)."""
     if isinstance(value, bool) or not isinstance(value, int) or not low <= value < MAX_COUNT:
-        shown = repr(value)
-        shown = shown if len(shown) <= 40 else shown[:37] + "..."
-        raise ValueError(f"{what} must be an integer >= {low} and < 2**62, got {shown}")
+        raise ValueError(f"{what} must be an integer >= {low} and < 2**62, got {shown(value)}")
     return value
 
 

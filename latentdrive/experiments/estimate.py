@@ -23,7 +23,7 @@ from latentdrive.models.vfan import VFANConfig
 from latentdrive.rl.config import PolicyTrainConfig
 from latentdrive.rl.dqn import DQNConfig
 
-__all__ = ["Estimate", "estimate_study", "makespan", "measured_rates", "scored_count", "step_size"]
+__all__ = ["Estimate", "estimate_study", "makespan", "measured_rates", "scored_count", "step_size", "step_times"]
 
 
 def step_size(step: Step, epoch_samples: float | None = None) -> tuple[str, float]:
@@ -143,21 +143,28 @@ class Estimate:
                 "workers": self.workers, "hours_by_class": self.by_class, "unmeasured": self.unmeasured}
 
 
-def estimate_study(graph: Graph, rates: Mapping[str, float], workers: int, epoch_samples: float | None = None) -> Estimate:
-    """Step and wall hours of ``graph`` at the measured ``rates``; ``epoch_samples`` as in
-    :func:`step_size`, for the planned study's dataset."""
-    times: dict[str, float] = {}
-    by_class: dict[str, float] = {}
-    unmeasured: set[str] = set()
+def step_times(graph: Graph, rates: Mapping[str, float],
+               epoch_samples: float | None = None) -> dict[str, tuple[str, float | None]]:
+    """Each step's class and its time at the measured ``rates`` (seconds; None where no
+    rate of its class was measured); ``epoch_samples`` as in :func:`step_size`."""
+    out: dict[str, tuple[str, float | None]] = {}
     for name, step in graph.steps.items():
         cls, n = step_size(step, epoch_samples)
-        if cls not in rates:
-            unmeasured.add(cls)
-            times[name] = 0.0
-            continue
-        t = rates[cls] * n
-        times[name] = t
-        by_class[cls] = by_class.get(cls, 0.0) + t / 3600
+        out[name] = (cls, rates[cls] * n if cls in rates else None)
+    return out
+
+
+def estimate_study(graph: Graph, rates: Mapping[str, float], workers: int, epoch_samples: float | None = None) -> Estimate:
+    """Step and wall hours of ``graph`` at the measured ``rates``; ``epoch_samples`` as in
+    :func:`step_size`, for the planned study's dataset. A step of a class not measured
+    counts 0 (and its class is listed)."""
+    sized = step_times(graph, rates, epoch_samples)
+    times = {name: t or 0.0 for name, (_, t) in sized.items()}
+    by_class: dict[str, float] = {}
+    for cls, t in sized.values():
+        if t is not None:
+            by_class[cls] = by_class.get(cls, 0.0) + t / 3600
+    unmeasured = {cls for cls, t in sized.values() if t is None}
     return Estimate(steps=len(graph.order), step_hours=sum(times.values()) / 3600,
                     wall_hours=makespan(graph, times, workers) / 3600, workers=workers,
                     by_class={k: round(v, 2) for k, v in sorted(by_class.items())}, unmeasured=sorted(unmeasured))

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from latentdrive.config import ConfigError
-from latentdrive.experiments.estimate import makespan, step_size
+from latentdrive.experiments.estimate import makespan, step_times
 from latentdrive.experiments.graph import Graph
 from latentdrive.experiments.reproduce import measure_study
 from latentdrive.experiments.study_runs import RUNS, read_runs, runs_summary
@@ -95,22 +95,16 @@ def study_status(out: str | Path, workers: int | None = None) -> StudyStatus:
         else:
             workers = 1
             workers_from = (f"{out / RUNS} is damaged" if runs is None else "no run logged one") + "; give --workers"
-    epoch = m.epoch_samples(m.config)
+    sized = step_times(graph, m.rates, m.epoch_samples(m.config))
     pending = [n for n in graph.order if n not in records]
-    times: dict[str, float] = {}
-    counts: dict[str, list[float]] = {}  # class -> [steps, finished, recorded s, left s]
-    for name in graph.order:
-        cls, size = step_size(graph.steps[name], epoch)
-        c = counts.setdefault(cls, [0, 0, 0.0, 0.0])
-        c[0] += 1
-        if name in records:
-            c[1] += 1
-            c[2] += records[name].cost_s
-        else:
-            times[name] = m.rates[cls] * size if cls in m.rates else graph.steps[name].cost
-            c[3] += times[name]
-    classes = {cls: ClassStatus(int(c[0]), int(c[1]), c[2] / 3600, c[3] / 3600, cls in m.rates)
-               for cls, c in sorted(counts.items())}
+    # A step of a class no finished step has measured counts at the graph's rough guess.
+    times = {n: t if (t := sized[n][1]) is not None else graph.steps[n].cost for n in pending}
+    classes = {}
+    for cls in sorted({c for c, _ in sized.values()}):
+        names = [n for n, (c, _) in sized.items() if c == cls]
+        done = [n for n in names if n in records]
+        classes[cls] = ClassStatus(len(names), len(done), sum(records[n].cost_s for n in done) / 3600,
+                                   sum(times[n] for n in names if n in times) / 3600, cls in m.rates)
     # The finished steps are done: the rest is scheduled on its own, from now.
     rest = Graph(dataclasses.replace(graph.steps[n], inputs={r: d for r, d in graph.steps[n].inputs.items()
                                                                if d in times}) for n in pending)
